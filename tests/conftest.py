@@ -1,0 +1,38 @@
+"""Shared test helpers: tiny configs of the shipped config files and perturbed parameters."""
+
+from pathlib import Path
+
+import jax
+import pytest
+
+from wmjax.config import load_config
+from wmjax.rollout import WorldModel
+
+ROOT = Path(__file__).resolve().parents[1]
+
+TINY = ("model.depth=2", "model.hidden_size=32", "model.num_heads=2", "model.num_frames=8")
+
+
+def tiny_config(config: str = "irasim.py:S", *overrides: str):
+  """A shipped config shrunk to a tiny width, updated by ``key=value`` overrides."""
+  return load_config(str(ROOT / "configs" / config), TINY + overrides)
+
+
+def perturbed(params, key, scale: float = 0.1):
+  """Add noise to every parameter: adaLN-Zero makes a fresh model ignore its conditioning."""
+  leaves, treedef = jax.tree.flatten(params)
+  keys = jax.random.split(key, len(leaves))
+  return jax.tree.unflatten(
+      treedef, [x + scale * jax.random.normal(k, x.shape, x.dtype) for x, k in zip(leaves, keys)])
+
+
+def tiny_world_model(config: str = "irasim.py:S", *overrides: str, frame_shape=(8, 8, 4), seed=0):
+  """(WorldModel, perturbed params) of a tiny config."""
+  wm = WorldModel.from_config(tiny_config(config, *overrides))
+  params = wm.init(jax.random.key(seed), frame_shape)
+  return wm, perturbed(params, jax.random.key(seed + 1))
+
+
+@pytest.fixture
+def rng():
+  return jax.random.key(0)

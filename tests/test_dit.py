@@ -1,0 +1,174 @@
+"""The ST-DiT: sizes, per-frame conditioning, sharding annotations, FLOPs and input checks."""
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conftest import ROOT, perturbed, tiny_config
+from wmjax.config import load_config
+from wmjax.nn import STDiT, forward_flops
+from wmjax.rollout import WorldModel
+
+PAPER_SIZES = [("irasim.py:S", 33e6), ("irasim.py:B", 132e6), ("irasim.py:L", 461e6),
+               ("irasim.py:XL", 679e6), ("wpe_600m.py", 609e6)]
+
+
+def _inputs(b, t, h, w, c, a, seed=0):
+  k1, k2, k3 = jax.random.split(jax.random.key(seed), 3)
+  return (jax.random.normal(k1, (b, t, h, w, c)),
+          jax.random.uniform(k2, (b, t), maxval=999.0),
+          jax.random.normal(k3, (b, t - 1, a)))
+
+
+@pytest.mark.parametrize("spec,paper", PAPER_SIZES)
+def test_parameter_counts_match_papers(spec, paper):
+  config = load_config(str(ROOT / "configs" / spec))
+  model = STDiT(**config.model)
+  h, w, c = config.frame_shape
+  x, t, a = (jax.ShapeDtypeStruct(s, jnp.float32) for s in
+             [(1, model.num_frames, h, w, c), (1, model.num_frames), (1, model.num_frames - 1, 7)])
+  shapes = jax.eval_shape(model.init, jax.random.key(0), x, t, a)
+  count = sum(int(np.prod(p.shape)) for p in jax.tree.leaves(shapes))
+  assert abs(count / paper - 1) < 0.02, f"{spec}: {count / 1e6:.1f}M vs {paper / 1e6:.0f}M"
+
+
+def _model(cond="frame", **kw):
+  config = tiny_config("irasim.py:S", f"model.cond={cond!r}", "model.causal_temporal=True")
+  fields = dict(config.model)
+  fields.update(kw)
+  model = STDiT(**fields)
+  x, t, a = _inputs(2, 6, 8, 8, 4, 7)
+  params = perturbed(model.init(jax.random.key(0), x, t, a), jax.random.key(1))
+  return model, params, (x, t, a)
+
+
+@pytest.mark.parametrize("cond", ["frame", "per_frame"])
+def test_action_j_conditions_frame_j_plus_1_only(cond):
+  """Causal temporal mask: changing action j changes no frame before j+1, and does change j+1."""
+  model, params, (x, t, a) = _model(cond)
+  base = model.apply(params, x, t, a)
+  for j in range(a.shape[1]):
+    out = model.apply(params, x, t, a.at[:, j].add(1.0))
+    diff = jnp.abs(out - base).reshape(out.shape[0], out.shape[1], -1).max(-1)  # [B, T]
+    assert float(diff[:, : j + 1].max()) == 0.0, f"action {j} leaked into frames <= {j}"
+    assert float(diff[:, j + 1].min()) > 1e-4, f"action {j} did not change frame {j + 1}"
+
+
+def test_frame_zero_and_masked_frames_use_null_embedding():
+  model, params, (_, t, a) = _model("frame")
+  spatial, temporal, final = model.apply(params, t, a, method=STDiT.conditioning)
+  temb = model.apply(params, t, method=lambda m, t: m.time_embed(t))
+  null = params["params"]["null_action"].value
+  np.testing.assert_allclose(spatial[:, 0], temb[:, 0] + null, rtol=1e-5, atol=1e-6)
+  np.testing.assert_allclose(temporal, temb, rtol=1e-5, atol=1e-6)  # IRASim: timestep only
+  np.testing.assert_allclose(final, spatial)
+  assert float(jnp.abs(spatial[:, 1:] - (temb[:, 1:] + null)).min()) > 0  # real actions differ
+  mask = jnp.ones(a.shape[:2], bool).at[:, 2].set(False)
+  masked, _, _ = model.apply(params, t, a, mask, method=STDiT.conditioning)
+  np.testing.assert_allclose(masked[:, 3], temb[:, 3] + null, rtol=1e-5, atol=1e-6)
+  dropped, _, _ = model.apply(params, t, a, None, jnp.array([True, False]),
+                              method=STDiT.conditioning)
+  np.testing.assert_allclose(dropped[0], temb[0] + null, rtol=1e-5, atol=1e-6)
+  np.testing.assert_allclose(dropped[1], spatial[1], rtol=1e-6)
+
+
+def test_video_mode_conditions_every_frame_on_the_whole_trajectory():
+  model, params, (x, t, a) = _model("video")
+  base = model.apply(params, x, t, a)
+  out = model.apply(params, x, t, a.at[:, -1].add(1.0))  # the last action only
+  diff = jnp.abs(out - base).reshape(out.shape[0], out.shape[1], -1).max(-1)
+  assert float(diff.min()) > 1e-4  # even frame 0, despite the causal mask
+
+
+def test_trajectory_in_temporal_variant_reaches_earlier_frames():
+  model, params, (x, t, a) = _model("frame", trajectory_in_temporal=True)
+  base = model.apply(params, x, t, a)
+  out = model.apply(params, x, t, a.at[:, -1].add(1.0))
+  assert float(jnp.abs(out - base)[:, 0].max()) > 1e-4
+
+
+def test_action_dropout_in_training_uses_null_embedding():
+  model, params, (x, t, a) = _model("frame", action_dropout=1.0)
+  train_out = model.apply(params, x, t, a, train=True, rngs={"dropout": jax.random.key(0)})
+  null_out = model.apply(params, x, t, a, None, jnp.ones((2,), bool))
+  np.testing.assert_allclose(train_out, null_out, rtol=1e-6)
+  assert float(jnp.abs(model.apply(params, x, t, a) - null_out).max()) > 1e-4
+
+
+def test_parameters_carry_logical_axes():
+  model, params, _ = _model("frame")
+  boxed = jax.tree.leaves(params, is_leaf=lambda v: isinstance(v, nn.Partitioned))
+  assert boxed and all(isinstance(v, nn.Partitioned) for v in boxed)
+  specs = nn.get_partition_spec(params)["params"]
+  attn = specs["blocks"]["layers"]["spatial"]["attn"]["query"]["kernel"]
+  assert tuple(attn) == ("layers", "embed", "heads", "kv")
+  assert tuple(specs["blocks"]["layers"]["temporal"]["mlp"]["fc1"]["kernel"]) == ("layers", "embed", "mlp")
+  for box in boxed:
+    assert len(box.names) == box.value.ndim
+
+
+def test_scanned_and_unrolled_layers_agree():
+  model, params, (x, t, a) = _model("per_frame")
+  unrolled = model.clone(scan_layers=False)
+  p = nn.unbox(params)["params"]
+  stacked = p["blocks"]["layers"]
+  p_unrolled = dict(p, blocks={f"layer_{i}": jax.tree.map(lambda v: v[i], stacked)
+                               for i in range(model.depth // 2)})
+  np.testing.assert_allclose(unrolled.apply({"params": p_unrolled}, x, t, a),
+                             model.apply(params, x, t, a), rtol=1e-5, atol=1e-5)
+
+
+def test_bf16_compute_keeps_float32_params():
+  model, params, (x, t, a) = _model("frame")
+  bf16 = model.clone(dtype="bfloat16")
+  assert all(v.dtype == jnp.float32 for v in jax.tree.leaves(bf16.init(jax.random.key(0), x, t, a)))
+  ref, out = model.apply(params, x, t, a), bf16.apply(params, x, t, a)
+  assert out.dtype == jnp.float32 and bool(jnp.isfinite(out).all())
+  assert float(jnp.abs(out - ref).max()) < 0.1 * float(jnp.abs(ref).max()) + 1e-3
+
+
+def test_rope_temporal_positions_run():
+  model, params, (x, t, a) = _model("frame", temporal_pos="rope")
+  out = model.apply(params, x, t, a)
+  assert out.shape == x.shape and bool(jnp.isfinite(out).all())
+
+
+@pytest.mark.parametrize("cond", ["frame", "video", "per_frame"])
+def test_flop_counter_matches_xla(cond):
+  model = STDiT(in_channels=4, patch_size=2, depth=4, hidden_size=256, num_heads=4,
+                num_frames=8, action_dim=7, cond=cond, scan_layers=False)  # XLA counts a loop body once
+  x, t, a = _inputs(2, 8, 16, 16, 4, 7)
+  params = model.init(jax.random.key(0), x, t, a)
+  cost = jax.jit(model.apply).lower(params, x, t, a).compile().cost_analysis()
+  cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+  analytic = forward_flops(model, 2, 8, 16, 16)
+  assert abs(analytic / cost["flops"] - 1) < 0.05, (analytic, cost["flops"])
+
+
+def test_flops_of_irasim_xl_match_the_design_figure():
+  config = load_config(str(ROOT / "configs" / "irasim.py:XL"))
+  flops = forward_flops(STDiT(**config.model), 1, 16, 32, 40)
+  assert 4.6e12 < flops < 4.9e12  # DESIGN.md: about 4.75 TFLOP
+
+
+@pytest.mark.parametrize("shape_change,message", [
+    (dict(c=3), "must have 4 channels, got 3"),
+    (dict(h=9), "divisible by the patch size 2, got 9x8"),
+    (dict(t=9), "supports at most 8 frames, got 9"),
+    (dict(a=6), r"actions must be \[B, T-1, A\] = \(2, 5, 7\)"),
+])
+def test_bad_shapes_raise_clear_errors(shape_change, message):
+  model, params, _ = _model("frame")
+  dims = dict(b=2, t=6, h=8, w=8, c=4, a=7)
+  dims.update(shape_change)
+  x, t, a = _inputs(**dims)
+  with pytest.raises(ValueError, match=message):
+    model.apply(params, x, t, a)
+
+
+def test_world_model_from_config_rejects_mismatched_sampler():
+  config = tiny_config("irasim.py:S", "sampling.sampler='euler'")
+  with pytest.raises(ValueError, match="does not fit"):
+    WorldModel.from_config(config)

@@ -1,0 +1,67 @@
+"""Load ``ml_collections`` config files: ``path/to/config.py[:arg]`` plus ``key=value`` overrides."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import importlib.util
+import os
+from typing import Sequence
+
+import ml_collections
+
+
+def _parse_value(text: str):
+  try:
+    return ast.literal_eval(text)
+  except (ValueError, SyntaxError):
+    return text
+
+
+def load_config(spec: str, overrides: Sequence[str] = ()) -> ml_collections.ConfigDict:
+  """Run ``get_config(arg)`` of the file in ``spec`` (``file.py`` or ``file.py:arg``).
+
+  ``overrides`` are ``dotted.key=value`` strings; values are Python literals (strings may be
+  bare). An unknown key or a value of the wrong type raises ValueError.
+  """
+  path, _, arg = spec.partition(":")
+  if not os.path.isfile(path):
+    raise ValueError(f"config file not found: {path!r}")
+  module_spec = importlib.util.spec_from_file_location(
+      f"wmjax_config_{abs(hash(os.path.abspath(path)))}", path)
+  module = importlib.util.module_from_spec(module_spec)
+  module_spec.loader.exec_module(module)
+  if not hasattr(module, "get_config"):
+    raise ValueError(f"{path} defines no get_config()")
+  config = module.get_config(arg) if arg else module.get_config()
+  for item in overrides:
+    key, sep, value = item.partition("=")
+    if not sep:
+      raise ValueError(f"override must be key=value, got {item!r}")
+    key = key.strip().removeprefix("--config.").removeprefix("config.")
+    try:
+      config.update_from_flattened_dict({key: _parse_value(value)})
+    except (KeyError, AttributeError, TypeError) as e:
+      raise ValueError(f"cannot apply override {item!r}: {e}") from e
+  return config
+
+
+def _dataclass_config(cls, skip: Sequence[str], overrides: dict) -> ml_collections.ConfigDict:
+  fields = {f.name: f.default for f in dataclasses.fields(cls) if f.name not in skip}
+  unknown = set(overrides) - set(fields)
+  if unknown:
+    raise ValueError(f"unknown {cls.__name__} fields {sorted(unknown)}; known: {sorted(fields)}")
+  fields.update(overrides)
+  return ml_collections.ConfigDict(fields)
+
+
+def model_config(**overrides) -> ml_collections.ConfigDict:
+  """Every :class:`wmjax.nn.STDiT` field with its default, updated by ``overrides``."""
+  from wmjax.nn.dit import STDiT
+  return _dataclass_config(STDiT, ("parent", "name"), overrides)
+
+
+def sampling_config(**overrides) -> ml_collections.ConfigDict:
+  """Every :class:`wmjax.diffusion.SamplerConfig` field with its default, updated by ``overrides``."""
+  from wmjax.diffusion.sampling import SamplerConfig
+  return _dataclass_config(SamplerConfig, (), overrides)

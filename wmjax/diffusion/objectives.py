@@ -1,0 +1,199 @@
+"""Forward processes, prediction targets and the training loss, with one noise level per frame.
+
+Two processes share one interface so that the samplers and the rollout are written once:
+
+* :class:`GaussianDiffusion` — discrete DDPM process over ``T`` levels. A level is an integer in
+  ``[-1, T-1]`` where ``-1`` means clean (``abar = 1``). The network predicts ``eps``, ``v`` or
+  ``x0``; ``v = sqrt(abar) eps - sqrt(1 - abar) x0``.
+* :class:`FlowMatching` — rectified flow (WorldGym): a level is ``t`` in ``[0, 1]``,
+  ``x_t = (1 - t) x0 + t eps`` and the network predicts the velocity ``eps - x0``.
+
+Videos are ``[B, T, H, W, C]`` and levels ``[B, T]``: one level per frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Union
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wmjax.diffusion import schedules
+
+PREDICTIONS = ("eps", "v", "x0")
+NOISE_REGIMES = ("irasim", "per_frame")
+
+
+def broadcast_per_frame(values: jax.Array, like: jax.Array) -> jax.Array:
+  """Broadcast per-frame values ``[B, T]`` against a video ``[B, T, ...]``."""
+  return values.reshape(values.shape + (1,) * (like.ndim - values.ndim))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class GaussianDiffusion:
+  """Discrete Gaussian diffusion; ``alphas_cumprod [T]`` from :mod:`wmjax.diffusion.schedules`."""
+
+  alphas_cumprod: np.ndarray
+  prediction: str = "eps"
+
+  clean_level = -1
+  samplers = ("ddim", "ddpm")
+
+  def __post_init__(self):
+    if self.prediction not in PREDICTIONS:
+      raise ValueError(f"prediction must be one of {PREDICTIONS}, got {self.prediction!r}")
+
+  @classmethod
+  def create(cls, schedule: str = "linear", num_timesteps: int = 1000,
+             prediction: str = "eps") -> "GaussianDiffusion":
+    betas = schedules.make_betas(schedule, num_timesteps)
+    return cls(schedules.alphas_cumprod(betas), prediction)
+
+  @property
+  def num_timesteps(self) -> int:
+    return len(self.alphas_cumprod)
+
+  def abar(self, levels: jax.Array) -> jax.Array:
+    """Signal ``abar`` at integer levels in ``[-1, T-1]`` (``-1`` -> 1.0); float32, same shape."""
+    table = jnp.asarray(np.concatenate([[1.0], self.alphas_cumprod]), jnp.float32)
+    return table[jnp.asarray(levels, jnp.int32) + 1]
+
+  def model_time(self, levels: jax.Array) -> jax.Array:
+    """The timestep the network is shown: the level itself, clean frames as 0."""
+    return jnp.maximum(jnp.asarray(levels, jnp.float32), 0.0)
+
+  def add_noise(self, x0: jax.Array, levels: jax.Array, noise: jax.Array) -> jax.Array:
+    """q_sample: ``sqrt(abar) x0 + sqrt(1 - abar) eps`` with per-frame ``abar``."""
+    ab = broadcast_per_frame(self.abar(levels), x0)
+    return jnp.sqrt(ab) * x0 + jnp.sqrt(1.0 - ab) * noise
+
+  def target(self, x0: jax.Array, noise: jax.Array, levels: jax.Array) -> jax.Array:
+    """What the network is trained to output: eps, v or x0."""
+    if self.prediction == "eps":
+      return noise
+    if self.prediction == "x0":
+      return x0
+    ab = broadcast_per_frame(self.abar(levels), x0)
+    return jnp.sqrt(ab) * noise - jnp.sqrt(1.0 - ab) * x0
+
+  def to_x0_eps(self, x_t: jax.Array, levels: jax.Array,
+                out: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Network output -> (x0, eps) estimates, per frame."""
+    ab = broadcast_per_frame(self.abar(levels), x_t)
+    sa, s1a = jnp.sqrt(ab), jnp.sqrt(1.0 - ab)
+    if self.prediction == "v":
+      x0 = sa * x_t - s1a * out
+      return x0, sa * out + s1a * x_t
+    if self.prediction == "eps":
+      return (x_t - s1a * out) / sa, out
+    return out, (x_t - sa * out) / jnp.maximum(s1a, 1e-12)
+
+  def context_input(self, x0: jax.Array, level: float) -> jax.Array:
+    """A clean context frame as shown at ``level``: scaled by ``sqrt(abar)``, no noise added."""
+    return jnp.sqrt(self.abar(jnp.asarray(int(level)))) * x0
+
+  def sample_levels(self, rng: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """Training levels, uniform over ``[0, T-1]``."""
+    return jax.random.randint(rng, shape, 0, self.num_timesteps)
+
+  def sampling_levels(self, num_steps: int) -> np.ndarray:
+    """The ``num_steps + 1`` levels a sampler visits: ``round(linspace(-1, T-1, S+1))``; index 0 is clean."""
+    return np.round(np.linspace(-1, self.num_timesteps - 1, num_steps + 1)).astype(np.int32)
+
+  def level(self, value: float) -> int:
+    """A configured level (e.g. the stabilisation level) in this process's units."""
+    return int(value)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class FlowMatching:
+  """Rectified flow with velocity target ``eps - x0``; ``num_timesteps`` scales the model time."""
+
+  num_timesteps: int = 1000
+
+  clean_level = 0.0
+  samplers = ("euler",)
+  prediction = "velocity"
+
+  def model_time(self, levels: jax.Array) -> jax.Array:
+    return jnp.asarray(levels, jnp.float32) * self.num_timesteps
+
+  def add_noise(self, x0, levels, noise):
+    t = broadcast_per_frame(jnp.asarray(levels, jnp.float32), x0)
+    return (1.0 - t) * x0 + t * noise
+
+  def target(self, x0, noise, levels):
+    del levels
+    return noise - x0
+
+  def to_x0_eps(self, x_t, levels, out):
+    t = broadcast_per_frame(jnp.asarray(levels, jnp.float32), x_t)
+    return x_t - t * out, x_t + (1.0 - t) * out
+
+  def context_input(self, x0, level):
+    return (1.0 - float(level)) * x0
+
+  def sample_levels(self, rng, shape):
+    """Logit-normal training times ``t = sigmoid(N(0, 1))``."""
+    return jax.nn.sigmoid(jax.random.normal(rng, shape))
+
+  def sampling_levels(self, num_steps: int) -> np.ndarray:
+    return np.linspace(0.0, 1.0, num_steps + 1, dtype=np.float32)
+
+  def level(self, value: float) -> float:
+    return float(value)
+
+
+Process = Union[GaussianDiffusion, FlowMatching]
+
+
+def make_process(kind: str = "gaussian", schedule: str = "linear", num_timesteps: int = 1000,
+                 prediction: str = "eps") -> Process:
+  """``kind='gaussian'`` (with schedule and prediction) or ``kind='flow'``."""
+  if kind == "gaussian":
+    return GaussianDiffusion.create(schedule, num_timesteps, prediction)
+  if kind == "flow":
+    return FlowMatching(num_timesteps)
+  raise ValueError(f"diffusion kind must be 'gaussian' or 'flow', got {kind!r}")
+
+
+def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,
+                    regime: str = "per_frame", num_context: int = 1) -> tuple[jax.Array, jax.Array]:
+  """Noise levels ``[B, T]`` and the loss mask ``[B, T]`` of one training batch.
+
+  ``irasim``: the first ``num_context`` frames are clean and excluded from the loss; the predicted
+  frames share one level per sample. ``per_frame`` (WPE, diffusion forcing): an independent level
+  for every frame, every frame in the loss.
+  """
+  if regime == "per_frame":
+    return process.sample_levels(rng, (batch, frames)), jnp.ones((batch, frames), jnp.float32)
+  if regime == "irasim":
+    if not 0 < num_context < frames:
+      raise ValueError(f"num_context must be in [1, {frames - 1}] for {frames} frames, "
+                       f"got {num_context}")
+    shared = process.sample_levels(rng, (batch, 1))
+    is_context = jnp.arange(frames)[None, :] < num_context
+    levels = jnp.where(is_context, jnp.asarray(process.clean_level, shared.dtype), shared)
+    return levels, jnp.broadcast_to(~is_context, (batch, frames)).astype(jnp.float32)
+  raise ValueError(f"noise regime must be one of {NOISE_REGIMES}, got {regime!r}")
+
+
+def diffusion_loss(denoise_fn: Callable[[jax.Array, jax.Array], jax.Array], process: Process,
+                   x0: jax.Array, rng: jax.Array, regime: str = "per_frame",
+                   num_context: int = 1) -> tuple[jax.Array, dict]:
+  """Unweighted MSE between the network output and the process's target on the loss frames.
+
+  ``denoise_fn(x_t, levels)`` runs the network on the noisy video ``[B, T, H, W, C]`` at levels
+  ``[B, T]``. Returns ``(loss, aux)`` with the per-frame loss ``[B, T]`` and the levels in ``aux``.
+  """
+  level_rng, noise_rng = jax.random.split(rng)
+  b, t = x0.shape[:2]
+  levels, mask = training_levels(process, level_rng, b, t, regime, num_context)
+  noise = jax.random.normal(noise_rng, x0.shape, x0.dtype)
+  out = denoise_fn(process.add_noise(x0, levels, noise), levels)
+  err = jnp.square(out.astype(jnp.float32) - process.target(x0, noise, levels))
+  per_frame = err.reshape(b, t, -1).mean(-1)
+  loss = (per_frame * mask).sum() / mask.sum()
+  return loss, {"per_frame_loss": per_frame, "levels": levels, "loss_mask": mask}

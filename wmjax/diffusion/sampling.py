@@ -1,0 +1,148 @@
+"""Samplers with per-frame noise levels, scheduling matrices and classifier-free guidance.
+
+A sampling run over a window of ``h`` new frames follows a *scheduling matrix* (diffusion
+forcing): row ``i`` gives, for every new frame, an index into the process's sampling levels
+(``S`` = pure noise, ``0`` = clean). Each row-to-row transition is one network call and one
+sampler step; frames whose level does not change keep their values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wmjax.diffusion.objectives import Process, broadcast_per_frame
+
+SCHEDULING_MATRICES = ("full_sequence", "pyramid", "autoregressive")
+SAMPLERS = ("ddim", "ddpm", "euler")
+
+
+def scheduling_matrix(kind: str, num_steps: int, horizon: int) -> np.ndarray:
+  """Rows = sampling iterations, columns = the ``horizon`` new frames; int indices in ``[0, S]``.
+
+  ``full_sequence``   all frames together: ``m[i, j] = S - i`` (S+1 rows).
+  ``pyramid``         each later frame lags one level: ``m[i, j] = clip(S + j - i, 0, S)``.
+  ``autoregressive``  one frame after the other: ``m[i, j] = clip(S (j + 1) - i, 0, S)``.
+  The first row is all ``S`` and the last all ``0``.
+  """
+  s, j = num_steps, np.arange(horizon)[None, :]
+  if kind == "full_sequence":
+    i = np.arange(s + 1)[:, None]
+    return np.broadcast_to(s - i, (s + 1, horizon)).astype(np.int32)
+  if kind == "pyramid":
+    i = np.arange(s + horizon)[:, None]
+    return np.clip(s + j - i, 0, s).astype(np.int32)
+  if kind == "autoregressive":
+    i = np.arange(s * horizon + 1)[:, None]
+    return np.clip(s * (j + 1) - i, 0, s).astype(np.int32)
+  raise ValueError(f"scheduling matrix must be one of {SCHEDULING_MATRICES}, got {kind!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class SamplerConfig:
+  """How a window is sampled.
+
+  ``context_level`` is the stabilisation level at which clean context frames are shown
+  (a DDPM level, e.g. 15 of 1000, or a flow time such as 0.01). ``guidance_scale`` w gives
+  ``out = out_null + w (out_cond - out_null)``; 1 disables guidance.
+  """
+
+  sampler: str = "ddim"
+  num_steps: int = 10
+  eta: float = 0.0
+  matrix: str = "full_sequence"
+  context_level: float = 15.0
+  guidance_scale: float = 1.0
+
+  def __post_init__(self):
+    if self.sampler not in SAMPLERS:
+      raise ValueError(f"sampler must be one of {SAMPLERS}, got {self.sampler!r}")
+    if self.matrix not in SCHEDULING_MATRICES:
+      raise ValueError(f"scheduling matrix must be one of {SCHEDULING_MATRICES}, got {self.matrix!r}")
+    if self.num_steps < 1:
+      raise ValueError(f"num_steps must be >= 1, got {self.num_steps}")
+    if self.eta < 0:
+      raise ValueError(f"eta must be >= 0, got {self.eta}")
+
+  def model_calls(self, horizon: int) -> int:
+    """Network evaluations per block (doubled batch when guidance is on)."""
+    return len(scheduling_matrix(self.matrix, self.num_steps, horizon)) - 1
+
+
+def ddim_step(process: Process, x: jax.Array, level_from: jax.Array, level_to: jax.Array,
+              out: jax.Array, key: jax.Array, eta: float = 0.0) -> jax.Array:
+  """DDIM from ``level_from`` to ``level_to`` (``[B, T]`` each) given the network output.
+
+  ``x' = sqrt(ab') x0 + sqrt(1 - ab' - sigma^2) eps + sigma z`` with
+  ``sigma = eta sqrt((1 - ab') / (1 - ab)) sqrt(1 - ab / ab')``; eta = 1 is DDPM ancestral
+  sampling (the exact posterior ``q(x' | x, x0)``).
+  """
+  x0, eps = process.to_x0_eps(x, level_from, out)
+  ab = broadcast_per_frame(process.abar(level_from), x)
+  ab_to = broadcast_per_frame(process.abar(level_to), x)
+  sigma = eta * jnp.sqrt((1.0 - ab_to) / jnp.maximum(1.0 - ab, 1e-12) * (1.0 - ab / ab_to))
+  direction = jnp.sqrt(jnp.maximum(1.0 - ab_to - sigma ** 2, 0.0))
+  new = jnp.sqrt(ab_to) * x0 + direction * eps
+  if eta > 0:
+    new = new + sigma * jax.random.normal(key, x.shape, x.dtype)
+  return jnp.where(broadcast_per_frame(level_from == level_to, x), x, new)
+
+
+def euler_step(process: Process, x: jax.Array, level_from: jax.Array, level_to: jax.Array,
+               out: jax.Array, key: jax.Array | None = None) -> jax.Array:
+  """Flow-matching Euler step ``x + (t' - t) v``; frames with ``t' == t`` are unchanged."""
+  del process, key
+  dt = jnp.asarray(level_to, jnp.float32) - jnp.asarray(level_from, jnp.float32)
+  return x + broadcast_per_frame(dt, x) * out
+
+
+def sampler_step(process: Process, config: SamplerConfig, x, level_from, level_to, out, key):
+  """One step of ``config.sampler`` (checked against the process: ddim/ddpm Gaussian, euler flow)."""
+  if config.sampler not in process.samplers:
+    raise ValueError(f"sampler {config.sampler!r} does not fit {type(process).__name__}; "
+                     f"expected one of {process.samplers}")
+  if config.sampler == "euler":
+    return euler_step(process, x, level_from, level_to, out)
+  eta = 1.0 if config.sampler == "ddpm" else config.eta
+  return ddim_step(process, x, level_from, level_to, out, key, eta)
+
+
+def classifier_free_guidance(out_cond: jax.Array, out_null: jax.Array, scale: float) -> jax.Array:
+  """``out_null + scale (out_cond - out_null)``."""
+  return out_null + scale * (out_cond - out_null)
+
+
+DenoiseFn = Callable[[jax.Array, jax.Array], jax.Array]
+
+
+def sample_window(denoise_fn: DenoiseFn, process: Process, config: SamplerConfig,
+                  context: jax.Array, noise: jax.Array, key: jax.Array) -> jax.Array:
+  """Denoise ``h`` new frames after ``c`` clean context frames; one ``lax.scan`` over the rows.
+
+  ``denoise_fn(x [B, c+h, ...], levels [B, c+h]) -> out [B, c+h, ...]`` runs the network on the
+  whole window. Context frames are shown at ``config.context_level`` (scaled, no noise) and stay
+  fixed; ``noise [B, h, ...]`` is the starting point of the new frames. Returns ``[B, h, ...]``.
+  """
+  b, c = context.shape[:2]
+  h = noise.shape[1]
+  matrix = scheduling_matrix(config.matrix, config.num_steps, h)
+  levels = process.sampling_levels(config.num_steps)[matrix]  # [R, h]
+  context_level = process.level(config.context_level)
+  context_in = process.context_input(context, context_level).astype(noise.dtype)
+  context_levels = jnp.full((b, c), context_level, levels.dtype)
+
+  def body(x_new, row):
+    level_from, level_to, step_key = row
+    level_from = jnp.broadcast_to(level_from, (b, h))
+    level_to = jnp.broadcast_to(level_to, (b, h))
+    window = jnp.concatenate([context_in, x_new], axis=1)
+    out = denoise_fn(window, jnp.concatenate([context_levels, level_from], axis=1))[:, c:]
+    return sampler_step(process, config, x_new, level_from, level_to, out, step_key), None
+
+  keys = jax.random.split(key, len(levels) - 1)
+  x_new, _ = jax.lax.scan(body, noise, (levels[:-1], levels[1:], keys))
+  return x_new

@@ -1,0 +1,322 @@
+"""Building blocks of the ST-DiT: embeddings, patchify, attention, MLP and adaLN-Zero blocks.
+
+Every parameter carries logical axis names (``nn.with_logical_partitioning``) so that
+``wmjax.parallel`` can map them onto a device mesh by rules. The names used:
+
+  embed       model width D
+  mlp         hidden width of an MLP (4D in a block, D in the embedders)
+  heads, kv   attention heads and head dimension
+  modulation  the 6D (block) or 2D (final layer) adaLN outputs
+  freq        timestep frequency features
+  action      raw action dimension
+  patch       patch pixels (p * p * channels)
+  layers      stacked layers when the blocks are scanned
+
+Activations are ``[B, T, P, D]``: batch, frames, patches of one frame, width.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Dtype = Any
+
+_xavier = nn.initializers.xavier_uniform()
+_zeros = nn.initializers.zeros
+
+
+def logical(init: Callable, *names: str | None) -> Callable:
+  """An initializer whose parameter is annotated with logical axis names."""
+  return nn.with_logical_partitioning(init, names)
+
+
+# --------------------------------------------------------------------------- positions
+
+
+def sincos_1d(dim: int, positions: np.ndarray) -> np.ndarray:
+  """Sin-cos embedding of positions ``[M]`` -> ``[M, dim]`` (sines first, then cosines)."""
+  if dim % 2:
+    raise ValueError(f"sin-cos embedding needs an even width, got {dim}")
+  omega = 1.0 / 10000 ** (np.arange(dim // 2, dtype=np.float64) / (dim / 2))
+  angles = np.asarray(positions, np.float64).reshape(-1)[:, None] * omega[None]
+  return np.concatenate([np.sin(angles), np.cos(angles)], axis=1).astype(np.float32)
+
+
+def sincos_2d(dim: int, grid_h: int, grid_w: int) -> np.ndarray:
+  """Fixed 2-D sin-cos positions of a (possibly non-square) patch grid -> ``[grid_h*grid_w, dim]``.
+
+  Half of the width encodes the row, half the column (MAE / DiT convention), row-major order.
+  """
+  if dim % 4:
+    raise ValueError(f"2-D sin-cos embedding needs a width divisible by 4, got {dim}")
+  rows, cols = np.meshgrid(np.arange(grid_h), np.arange(grid_w), indexing="ij")
+  return np.concatenate(
+      [sincos_1d(dim // 2, rows.reshape(-1)), sincos_1d(dim // 2, cols.reshape(-1))], axis=1)
+
+
+def timestep_features(t: jax.Array, dim: int = 256, max_period: float = 10000.0) -> jax.Array:
+  """DiT sinusoidal timestep features: ``t [...]`` (may be fractional) -> ``[..., dim]``."""
+  half = dim // 2
+  freqs = jnp.exp(-math.log(max_period) * jnp.arange(half, dtype=jnp.float32) / half)
+  args = t.astype(jnp.float32)[..., None] * freqs
+  return jnp.concatenate([jnp.cos(args), jnp.sin(args)], axis=-1)
+
+
+def rope(x: jax.Array, positions: jax.Array, base: float = 10000.0) -> jax.Array:
+  """Rotary position embedding over the last axis of ``x [N, L, H, d]`` at ``positions [L]``."""
+  d = x.shape[-1]
+  if d % 2:
+    raise ValueError(f"RoPE needs an even head dimension, got {d}")
+  inv_freq = 1.0 / base ** (jnp.arange(0, d, 2, dtype=jnp.float32) / d)
+  angles = positions.astype(jnp.float32)[:, None] * inv_freq  # [L, d/2]
+  cos, sin = jnp.cos(angles)[None, :, None], jnp.sin(angles)[None, :, None]
+  x1, x2 = jnp.split(x.astype(jnp.float32), 2, axis=-1)
+  return jnp.concatenate([x1 * cos - x2 * sin, x1 * sin + x2 * cos], axis=-1).astype(x.dtype)
+
+
+# --------------------------------------------------------------------------- embedders
+
+
+class TimestepEmbedder(nn.Module):
+  """Noise level -> conditioning vector: sinusoid(256) -> Linear -> SiLU -> Linear.
+
+  ``t [...]`` -> ``[..., D]``.
+  """
+
+  hidden_size: int
+  frequency_dim: int = 256
+  dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, t: jax.Array) -> jax.Array:
+    init = nn.initializers.normal(0.02)
+    h = timestep_features(t, self.frequency_dim)
+    h = nn.Dense(self.hidden_size, dtype=self.dtype, kernel_init=logical(init, "freq", "mlp"),
+                 bias_init=logical(_zeros, "mlp"), name="fc1")(h)
+    h = nn.silu(h)
+    return nn.Dense(self.hidden_size, dtype=self.dtype, kernel_init=logical(init, "mlp", "embed"),
+                    bias_init=logical(_zeros, "embed"), name="fc2")(h)
+
+
+class ActionEmbedder(nn.Module):
+  """Raw action vector -> conditioning vector ``[..., A] -> [..., D]``.
+
+  ``hidden_ratio == 0`` is one linear map (WPE); otherwise an MLP
+  ``Linear(A, ratio*D) -> GELU-tanh -> Linear(ratio*D, D)`` (IRASim).
+  """
+
+  hidden_size: int
+  hidden_ratio: int = 0
+  dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, actions: jax.Array) -> jax.Array:
+    if self.hidden_ratio == 0:
+      return nn.Dense(self.hidden_size, dtype=self.dtype,
+                      kernel_init=logical(_xavier, "action", "embed"),
+                      bias_init=logical(_zeros, "embed"), name="proj")(actions)
+    return Mlp(self.hidden_size, self.hidden_ratio * self.hidden_size, in_axis="action",
+               dtype=self.dtype, name="mlp")(actions)
+
+
+class PatchEmbed(nn.Module):
+  """Non-overlapping patches of each frame, linearly embedded.
+
+  ``[B, T, H, W, C] -> [B, T, (H/p)*(W/p), D]`` (row-major patch order).
+  """
+
+  patch_size: int
+  hidden_size: int
+  dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    patches = patchify(x, self.patch_size)  # [B, T, P, p*p*C]
+    return nn.Dense(self.hidden_size, dtype=self.dtype,
+                    kernel_init=logical(_xavier, "patch", "embed"),
+                    bias_init=logical(_zeros, "embed"), name="proj")(patches)
+
+
+def patchify(x: jax.Array, p: int) -> jax.Array:
+  """``[B, T, H, W, C] -> [B, T, (H/p)*(W/p), p*p*C]``, patches row-major, pixels (py, px, c)."""
+  b, t, h, w, c = x.shape
+  x = x.reshape(b, t, h // p, p, w // p, p, c)
+  x = x.transpose(0, 1, 2, 4, 3, 5, 6)
+  return x.reshape(b, t, (h // p) * (w // p), p * p * c)
+
+
+def unpatchify(x: jax.Array, grid_h: int, grid_w: int, p: int) -> jax.Array:
+  """Inverse of :func:`patchify`: ``[B, T, gh*gw, p*p*C] -> [B, T, gh*p, gw*p, C]``."""
+  b, t, n, d = x.shape
+  c = d // (p * p)
+  x = x.reshape(b, t, grid_h, grid_w, p, p, c)
+  x = x.transpose(0, 1, 2, 4, 3, 5, 6)
+  return x.reshape(b, t, grid_h * p, grid_w * p, c)
+
+
+# --------------------------------------------------------------------------- transformer
+
+
+class Mlp(nn.Module):
+  """``Linear -> GELU(tanh) -> Linear``; ``[..., in] -> [..., features]``."""
+
+  features: int
+  hidden: int
+  in_axis: str = "embed"
+  dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    x = nn.Dense(self.hidden, dtype=self.dtype, kernel_init=logical(_xavier, self.in_axis, "mlp"),
+                 bias_init=logical(_zeros, "mlp"), name="fc1")(x)
+    x = nn.gelu(x, approximate=True)
+    return nn.Dense(self.features, dtype=self.dtype, kernel_init=logical(_xavier, "mlp", "embed"),
+                    bias_init=logical(_zeros, "embed"), name="fc2")(x)
+
+
+class Attention(nn.Module):
+  """Multi-head self-attention over axis 1 of ``x [N, L, D]`` through ``jax.nn.dot_product_attention``.
+
+  ``causal`` masks future positions; ``rope`` rotates queries and keys by their position.
+  ``implementation`` is passed to ``jax.nn.dot_product_attention`` (None lets JAX choose, 'xla',
+  'cudnn').
+  """
+
+  num_heads: int
+  causal: bool = False
+  rope: bool = False
+  implementation: str | None = None
+  dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    d = x.shape[-1]
+    head_dim = d // self.num_heads
+
+    def project(name):
+      return nn.DenseGeneral((self.num_heads, head_dim), dtype=self.dtype,
+                             kernel_init=logical(_xavier, "embed", "heads", "kv"),
+                             bias_init=logical(_zeros, "heads", "kv"), name=name)(x)
+
+    q, k, v = project("query"), project("key"), project("value")  # [N, L, H, d]
+    if self.rope:
+      positions = jnp.arange(x.shape[1])
+      q, k = rope(q, positions), rope(k, positions)
+    out = jax.nn.dot_product_attention(q, k, v, is_causal=self.causal,
+                                       implementation=self.implementation)
+    return nn.DenseGeneral(d, axis=(-2, -1), dtype=self.dtype,
+                           kernel_init=logical(_xavier, "heads", "kv", "embed"),
+                           bias_init=logical(_zeros, "embed"), name="out")(out)
+
+
+def layer_norm(x: jax.Array) -> jax.Array:
+  """LayerNorm without affine parameters (eps 1e-6), computed in float32."""
+  x32 = x.astype(jnp.float32)
+  mean = x32.mean(-1, keepdims=True)
+  var = jnp.square(x32 - mean).mean(-1, keepdims=True)
+  return ((x32 - mean) * jax.lax.rsqrt(var + 1e-6)).astype(x.dtype)
+
+
+def modulate(x: jax.Array, shift: jax.Array, scale: jax.Array) -> jax.Array:
+  return x * (1 + scale) + shift
+
+
+class Modulation(nn.Module):
+  """adaLN-Zero regression ``SiLU -> Linear(D, n*D)``, zero-initialised; ``[..., D] -> n x [..., D]``."""
+
+  num_chunks: int
+  dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, cond: jax.Array) -> tuple[jax.Array, ...]:
+    d = cond.shape[-1]
+    out = nn.Dense(self.num_chunks * d, dtype=self.dtype,
+                   kernel_init=logical(_zeros, "embed", "modulation"),
+                   bias_init=logical(_zeros, "modulation"), name="proj")(nn.silu(cond))
+    return tuple(jnp.split(out, self.num_chunks, axis=-1))
+
+
+class STBlock(nn.Module):
+  """DiT adaLN-Zero block attending over one axis of the ``[B, T, P, D]`` token grid.
+
+  ``axis='spatial'``: the P patches of each frame attend to each other.
+  ``axis='temporal'``: each patch position attends across the T frames (optionally causal).
+  ``cond [B, T, D]`` is the per-frame conditioning vector; it modulates every token of its frame.
+  """
+
+  axis: str
+  num_heads: int
+  mlp_ratio: int = 4
+  causal: bool = False
+  rope: bool = False
+  attention_impl: str | None = None
+  dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array, cond: jax.Array) -> jax.Array:
+    b, t, p, d = x.shape
+    shift_a, scale_a, gate_a, shift_m, scale_m, gate_m = (
+        m[:, :, None, :] for m in Modulation(6, dtype=self.dtype, name="modulation")(cond))
+    attention = Attention(self.num_heads, causal=self.causal, rope=self.rope,
+                          implementation=self.attention_impl, dtype=self.dtype, name="attn")
+    h = modulate(layer_norm(x), shift_a, scale_a)
+    if self.axis == "spatial":
+      h = attention(h.reshape(b * t, p, d)).reshape(b, t, p, d)
+    elif self.axis == "temporal":
+      h = h.transpose(0, 2, 1, 3).reshape(b * p, t, d)
+      h = attention(h).reshape(b, p, t, d).transpose(0, 2, 1, 3)
+    else:
+      raise ValueError(f"axis must be 'spatial' or 'temporal', got {self.axis!r}")
+    x = x + gate_a * h
+    h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, name="mlp")(modulate(layer_norm(x), shift_m,
+                                                                           scale_m))
+    return x + gate_m * h
+
+
+class STLayer(nn.Module):
+  """One spatial block followed by one temporal block (the unit that is stacked / scanned).
+
+  ``x [B, T, P, D]``, ``spatial_cond`` and ``temporal_cond`` ``[B, T, D]`` -> ``(x', None)`` with
+  ``x' [B, T, P, D]``; the ``(carry, output)`` pair is what ``nn.scan`` expects.
+  """
+
+  num_heads: int
+  mlp_ratio: int = 4
+  causal: bool = False
+  rope: bool = False
+  attention_impl: str | None = None
+  dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x, spatial_cond, temporal_cond):
+    common = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio,
+                  attention_impl=self.attention_impl, dtype=self.dtype)
+    x = STBlock("spatial", **common, name="spatial")(x, spatial_cond)
+    x = STBlock("temporal", causal=self.causal, rope=self.rope, **common,
+                name="temporal")(x, temporal_cond)
+    return x, None
+
+
+class FinalLayer(nn.Module):
+  """adaLN (shift, scale) then a zero-initialised linear map to patch pixels.
+
+  ``x [B, T, P, D]``, ``cond [B, T, D]`` -> ``[B, T, P, p*p*C]``.
+  """
+
+  out_features: int
+  dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array, cond: jax.Array) -> jax.Array:
+    shift, scale = (m[:, :, None, :] for m in Modulation(2, dtype=self.dtype,
+                                                          name="modulation")(cond))
+    x = modulate(layer_norm(x), shift, scale)
+    return nn.Dense(self.out_features, dtype=self.dtype,
+                    kernel_init=logical(_zeros, "embed", "patch"),
+                    bias_init=logical(_zeros, "patch"), name="linear")(x)

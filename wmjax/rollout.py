@@ -1,0 +1,220 @@
+"""Blockwise autoregressive rollout of an action-conditioned world model (WPE, IRASim chaining).
+
+A rollout starts from ``c`` context frames and a sequence of ``N`` actions. Each block takes the
+last ``c`` frames, appends ``h`` noise frames, denoises them conditioned on the window's actions
+(following the sampler's scheduling matrix), and slides by ``h``. IRASim's long-trajectory
+chaining is ``c = 1, h = 15``. The whole rollout is one jitted function: ``lax.scan`` over blocks,
+an inner ``lax.scan`` over sampling steps.
+
+Action alignment follows the model: in a window of ``c + h`` frames, frame ``j >= 1`` is
+conditioned on the action that led to it. For the first block the ``c - 1`` actions between the
+context frames come from ``context_actions`` or, when they are not known, the null embedding.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from wmjax.diffusion import objectives
+from wmjax.diffusion.sampling import SamplerConfig, classifier_free_guidance, sample_window
+from wmjax.nn.dit import STDiT
+
+Params = Any
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class WorldModel:
+  """The network, its diffusion process and how it is sampled; hashable by identity (jit-static)."""
+
+  network: STDiT
+  process: objectives.Process
+  sampler: SamplerConfig
+
+  @classmethod
+  def from_config(cls, config: ml_collections.ConfigDict) -> "WorldModel":
+    """From a config with ``model`` (STDiT fields), ``diffusion`` and ``sampling`` sections."""
+    d = config.diffusion
+    process = objectives.make_process(d.kind, d.get("schedule", "linear"), d.num_timesteps,
+                                      d.get("prediction", "eps"))
+    sampler = SamplerConfig(**config.sampling.to_dict())
+    if sampler.sampler not in process.samplers:
+      raise ValueError(f"sampling.sampler={sampler.sampler!r} does not fit diffusion.kind="
+                       f"{d.kind!r}; expected one of {process.samplers}")
+    return cls(STDiT(**config.model.to_dict()), process, sampler)
+
+  def init(self, rng: jax.Array, frame_shape: tuple[int, int, int], frames: int | None = None
+           ) -> Params:
+    """Initial variables for frames of ``frame_shape = (H, W, C)``."""
+    n = frames or self.network.num_frames
+    x = jnp.zeros((1, n) + tuple(frame_shape), jnp.float32)
+    actions = jnp.zeros((1, n - 1, self.network.action_dim), jnp.float32)
+    return self.network.init(rng, x, jnp.zeros((1, n), jnp.float32), actions)
+
+  def denoise(self, params: Params, x: jax.Array, levels: jax.Array, actions: jax.Array,
+              action_mask: jax.Array) -> jax.Array:
+    """Network output for the window ``x [B, T, ...]`` at process levels ``[B, T]``, with guidance."""
+    t = self.process.model_time(levels)
+    scale = self.sampler.guidance_scale
+    if scale == 1.0:
+      return self.network.apply(params, x, t, actions, action_mask)
+    b = x.shape[0]
+    twice = lambda a: jnp.concatenate([a, a], axis=0)
+    drop = jnp.concatenate([jnp.zeros((b,), bool), jnp.ones((b,), bool)])
+    out = self.network.apply(params, twice(x), twice(t), twice(actions), twice(action_mask), drop)
+    return classifier_free_guidance(out[:b], out[b:], scale)
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def _is_concrete(x) -> bool:
+  return not isinstance(x, jax.core.Tracer)
+
+
+def _check_finite(name: str, x) -> None:
+  if _is_concrete(x) and not np.isfinite(np.asarray(x)).all():
+    raise ValueError(f"{name} contain NaN or inf values")
+
+
+def _check_array(name: str, x, ndim: int, layout: str) -> None:
+  if getattr(x, "ndim", None) != ndim:
+    raise ValueError(f"{name} must be {layout}, got shape {tuple(np.shape(x))}")
+
+
+def check_rollout_inputs(world_model: WorldModel, context, actions, horizon: int,
+                         context_actions=None) -> None:
+  """ValueError, naming what was expected and what came, for any input the rollout cannot take."""
+  net = world_model.network
+  _check_array("context frames", context, 5, "[B, c, H, W, C]")
+  _check_array("actions", actions, 3, "[B, N, A]")
+  b, c = context.shape[:2]
+  if actions.shape[0] != b:
+    raise ValueError(f"batch sizes differ: context frames have B={b}, actions have "
+                     f"B={actions.shape[0]}")
+  if actions.shape[2] != net.action_dim:
+    raise ValueError(f"actions must have dimension A={net.action_dim}, got {actions.shape[2]}")
+  if actions.shape[1] < 1:
+    raise ValueError("actions must hold at least one action, got N=0")
+  if not isinstance(horizon, (int, np.integer)) or horizon < 1:
+    raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
+  if c + horizon > net.num_frames:
+    raise ValueError(f"context + horizon = {c} + {horizon} frames exceeds the {net.num_frames} "
+                     f"frames the model supports")
+  window = jax.ShapeDtypeStruct((b, c + horizon) + tuple(context.shape[2:]), jnp.float32)
+  net.check_inputs(window, jax.ShapeDtypeStruct((b, c + horizon), jnp.float32),
+                   jax.ShapeDtypeStruct((b, c + horizon - 1, net.action_dim), jnp.float32))
+  if context_actions is not None:
+    expected = (b, c - 1, net.action_dim)
+    if tuple(context_actions.shape) != expected:
+      raise ValueError(f"context_actions must be [B, c-1, A] = {expected}, got "
+                       f"{tuple(context_actions.shape)}")
+    _check_finite("context_actions", context_actions)
+  _check_finite("context frames", context)
+  _check_finite("actions", actions)
+
+
+# ----------------------------------------------------------------------------- one block
+
+
+def _sample_block(world_model: WorldModel, params: Params, context: jax.Array,
+                  window_actions: jax.Array, window_mask: jax.Array, rng: jax.Array) -> jax.Array:
+  c = context.shape[1]
+  h = window_actions.shape[1] - c + 1
+  noise_key, step_key = jax.random.split(rng)
+  noise = jax.random.normal(noise_key, (context.shape[0], h) + context.shape[2:], jnp.float32)
+
+  def denoise(x, levels):
+    return world_model.denoise(params, x, levels, window_actions, window_mask)
+
+  return sample_window(denoise, world_model.process, world_model.sampler,
+                       context.astype(jnp.float32), noise, step_key)
+
+
+_sample_block_jit = jax.jit(_sample_block, static_argnums=0)
+
+
+def sample_block(world_model: WorldModel, params: Params, context: jax.Array,
+                 window_actions: jax.Array, rng: jax.Array,
+                 window_mask: jax.Array | None = None) -> jax.Array:
+  """Generate the ``h`` frames that follow ``context [B, c, H, W, C]``: one jitted block.
+
+  ``window_actions [B, c+h-1, A]`` are the actions of the window's frames 1..c+h-1 (the last
+  ``h`` of them lead to the new frames); ``window_mask [B, c+h-1]`` marks the known ones (others
+  use the null embedding). Returns ``[B, h, H, W, C]``. This is the step of closed-loop
+  environments; :func:`rollout` scans it.
+  """
+  c = np.shape(context)[1] if np.ndim(context) == 5 else 0
+  _check_array("window_actions", window_actions, 3, "[B, c+h-1, A]")
+  horizon = window_actions.shape[1] - c + 1
+  check_rollout_inputs(world_model, context, window_actions[:, c - 1:], horizon,
+                       window_actions[:, :c - 1])
+  if window_mask is None:
+    window_mask = jnp.ones(window_actions.shape[:2], bool)
+  elif tuple(window_mask.shape) != tuple(window_actions.shape[:2]):
+    raise ValueError(f"window_mask must be [B, c+h-1] = {tuple(window_actions.shape[:2])}, got "
+                     f"{tuple(window_mask.shape)}")
+  return _sample_block_jit(world_model, params, context, window_actions, window_mask, rng)
+
+
+# ----------------------------------------------------------------------------- rollout
+
+
+def _rollout(world_model: WorldModel, params: Params, context: jax.Array, actions: jax.Array,
+             action_mask: jax.Array, rng: jax.Array, horizon: int, num_frames: int) -> jax.Array:
+  """``actions [B, c-1+K*h, A]`` cover the context and K whole blocks; returns ``[B, c+N, ...]``."""
+  c, h = context.shape[1], horizon
+  num_blocks = (actions.shape[1] - (c - 1)) // h
+  index = np.arange(num_blocks)[:, None] * h + np.arange(c + h - 1)[None, :]  # [K, c+h-1]
+  block_actions = jnp.moveaxis(actions[:, index], 1, 0)  # [K, B, c+h-1, A]
+  block_mask = jnp.moveaxis(action_mask[:, index], 1, 0)
+  keys = jax.random.split(rng, num_blocks)
+
+  def body(ctx, block):
+    window_actions, window_mask, key = block
+    new = _sample_block(world_model, params, ctx, window_actions, window_mask, key)
+    return jnp.concatenate([ctx, new], axis=1)[:, -c:], new
+
+  _, new_frames = jax.lax.scan(body, context.astype(jnp.float32),
+                               (block_actions, block_mask, keys))
+  new_frames = jnp.moveaxis(new_frames, 0, 1)  # [B, K, h, ...]
+  new_frames = new_frames.reshape((new_frames.shape[0], num_blocks * h) + new_frames.shape[3:])
+  return jnp.concatenate([context.astype(jnp.float32), new_frames], axis=1)[:, :num_frames]
+
+
+_rollout_jit = jax.jit(_rollout, static_argnums=(0, 6, 7))
+
+
+def rollout(world_model: WorldModel, params: Params, context: jax.Array, actions: jax.Array,
+            rng: jax.Array, *, horizon: int, context_actions: jax.Array | None = None
+            ) -> jax.Array:
+  """Roll the model out from ``context [B, c, H, W, C]`` under ``actions [B, N, A]``.
+
+  ``actions[:, k]`` moves frame ``c-1+k`` to frame ``c+k``. Blocks of ``horizon`` frames are
+  generated one after another; when N is not a multiple of ``horizon`` the last block is padded
+  with null actions and its extra frames are dropped. Block ``k`` samples with
+  ``jax.random.split(rng, K)[k]``. ``context_actions [B, c-1, A]`` are the actions between the
+  context frames, if known. Returns every frame, context included: ``[B, c+N, H, W, C]`` float32.
+  """
+  check_rollout_inputs(world_model, context, actions, horizon, context_actions)
+  b, c = context.shape[:2]
+  n, a = actions.shape[1:]
+  num_blocks = math.ceil(n / horizon)
+  pad = num_blocks * horizon - n
+  if context_actions is None:
+    context_actions = jnp.zeros((b, c - 1, a), jnp.float32)
+    context_known = jnp.zeros((b, c - 1), bool)
+  else:
+    context_known = jnp.ones((b, c - 1), bool)
+  all_actions = jnp.concatenate([jnp.asarray(context_actions, jnp.float32),
+                                 jnp.asarray(actions, jnp.float32),
+                                 jnp.zeros((b, pad, a), jnp.float32)], axis=1)
+  mask = jnp.concatenate([context_known, jnp.ones((b, n), bool), jnp.zeros((b, pad), bool)], 1)
+  return _rollout_jit(world_model, params, jnp.asarray(context), all_actions, mask, rng,
+                      horizon, c + n)
