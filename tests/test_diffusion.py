@@ -160,6 +160,20 @@ def test_sampler_with_perfect_denoiser_recovers_x0(name, matrix):
   np.testing.assert_allclose(out, x0[:, c:], atol=2e-4)
 
 
+@pytest.mark.parametrize("name", sorted(PROCESSES))
+def test_clip_denoised_bounds_the_samples(name):
+  process, sampler, eta = PROCESSES[name]
+  config = SamplerConfig(sampler=sampler, num_steps=5, eta=eta, clip_denoised=True,
+                         context_level=0.01 if sampler == "euler" else 15)
+  x0 = jnp.clip(jax.random.normal(jax.random.key(0), (2, 4, 4, 4, 3)), -1, 1)
+  exact = sample_window(_perfect_denoiser(process, x0),
+                        process, config, x0[:, :1], jnp.zeros((2, 3, 4, 4, 3)), jax.random.key(1))
+  wild = sample_window(lambda x, levels: 50.0 * jnp.ones_like(x), process, config, x0[:, :1],
+                       jax.random.normal(jax.random.key(2), (2, 3, 4, 4, 3)), jax.random.key(1))
+  assert float(jnp.abs(wild).max()) <= 1.0 + 1e-5
+  np.testing.assert_allclose(exact, x0[:, 1:], atol=2e-4)
+
+
 def test_ddpm_step_is_the_posterior():
   """DDIM with eta=1 draws from q(x_s | x_t, x0) of DDPM, per frame."""
   process = GaussianDiffusion.create("linear", prediction="eps")

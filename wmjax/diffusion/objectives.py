@@ -88,7 +88,12 @@ class GaussianDiffusion:
       return x0, sa * out + s1a * x_t
     if self.prediction == "eps":
       return (x_t - s1a * out) / sa, out
-    return out, (x_t - sa * out) / jnp.maximum(s1a, 1e-12)
+    return out, self.eps_from_x0(x_t, levels, out)
+
+  def eps_from_x0(self, x_t: jax.Array, levels: jax.Array, x0: jax.Array) -> jax.Array:
+    """The noise that takes ``x0`` to ``x_t`` at ``levels``."""
+    ab = broadcast_per_frame(self.abar(levels), x_t)
+    return (x_t - jnp.sqrt(ab) * x0) / jnp.sqrt(jnp.maximum(1.0 - ab, 1e-12))
 
   def context_input(self, x0: jax.Array, level: float) -> jax.Array:
     """A clean context frame as shown at ``level``: scaled by ``sqrt(abar)``, no noise added."""
@@ -131,6 +136,10 @@ class FlowMatching:
   def to_x0_eps(self, x_t, levels, out):
     t = broadcast_per_frame(jnp.asarray(levels, jnp.float32), x_t)
     return x_t - t * out, x_t + (1.0 - t) * out
+
+  def eps_from_x0(self, x_t, levels, x0):
+    t = broadcast_per_frame(jnp.asarray(levels, jnp.float32), x_t)
+    return (x_t - (1.0 - t) * x0) / jnp.maximum(t, 1e-12)
 
   def context_input(self, x0, level):
     return (1.0 - float(level)) * x0

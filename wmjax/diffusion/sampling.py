@@ -48,7 +48,8 @@ class SamplerConfig:
 
   ``context_level`` is the stabilisation level at which clean context frames are shown
   (a DDPM level, e.g. 15 of 1000, or a flow time such as 0.01). ``guidance_scale`` w gives
-  ``out = out_null + w (out_cond - out_null)``; 1 disables guidance.
+  ``out = out_null + w (out_cond - out_null)``; 1 disables guidance. ``clip_denoised`` clips the
+  x0 estimate to [-1, 1] at every step (pixel-space models).
   """
 
   sampler: str = "ddim"
@@ -57,6 +58,7 @@ class SamplerConfig:
   matrix: str = "full_sequence"
   context_level: float = 15.0
   guidance_scale: float = 1.0
+  clip_denoised: bool = False
 
   def __post_init__(self):
     if self.sampler not in SAMPLERS:
@@ -73,15 +75,24 @@ class SamplerConfig:
     return len(scheduling_matrix(self.matrix, self.num_steps, horizon)) - 1
 
 
+def _denoised(process: Process, x: jax.Array, level: jax.Array, out: jax.Array,
+              clip: bool) -> tuple[jax.Array, jax.Array]:
+  x0, eps = process.to_x0_eps(x, level, out)
+  if clip:
+    x0 = jnp.clip(x0, -1.0, 1.0)
+    eps = process.eps_from_x0(x, level, x0)
+  return x0, eps
+
+
 def ddim_step(process: Process, x: jax.Array, level_from: jax.Array, level_to: jax.Array,
-              out: jax.Array, key: jax.Array, eta: float = 0.0) -> jax.Array:
+              out: jax.Array, key: jax.Array, eta: float = 0.0, clip: bool = False) -> jax.Array:
   """DDIM from ``level_from`` to ``level_to`` (``[B, T]`` each) given the network output.
 
   ``x' = sqrt(ab') x0 + sqrt(1 - ab' - sigma^2) eps + sigma z`` with
   ``sigma = eta sqrt((1 - ab') / (1 - ab)) sqrt(1 - ab / ab')``; eta = 1 is DDPM ancestral
-  sampling (the exact posterior ``q(x' | x, x0)``).
+  sampling (the exact posterior ``q(x' | x, x0)``). Frames whose level does not change are kept.
   """
-  x0, eps = process.to_x0_eps(x, level_from, out)
+  x0, eps = _denoised(process, x, level_from, out, clip)
   ab = broadcast_per_frame(process.abar(level_from), x)
   ab_to = broadcast_per_frame(process.abar(level_to), x)
   sigma = eta * jnp.sqrt((1.0 - ab_to) / jnp.maximum(1.0 - ab, 1e-12) * (1.0 - ab / ab_to))
@@ -93,11 +104,15 @@ def ddim_step(process: Process, x: jax.Array, level_from: jax.Array, level_to: j
 
 
 def euler_step(process: Process, x: jax.Array, level_from: jax.Array, level_to: jax.Array,
-               out: jax.Array, key: jax.Array | None = None) -> jax.Array:
-  """Flow-matching Euler step ``x + (t' - t) v``; frames with ``t' == t`` are unchanged."""
-  del process, key
-  dt = jnp.asarray(level_to, jnp.float32) - jnp.asarray(level_from, jnp.float32)
-  return x + broadcast_per_frame(dt, x) * out
+               out: jax.Array, clip: bool = False) -> jax.Array:
+  """Flow-matching Euler step ``x + (t' - t) v``; frames with ``t' == t`` are unchanged.
+
+  Written as ``(1 - t') x0 + t' eps`` of the current estimates, which is the same step and lets
+  the x0 estimate be clipped.
+  """
+  x0, eps = _denoised(process, x, level_from, out, clip)
+  new = process.add_noise(x0, level_to, eps)
+  return jnp.where(broadcast_per_frame(level_from == level_to, x), x, new)
 
 
 def sampler_step(process: Process, config: SamplerConfig, x, level_from, level_to, out, key):
@@ -106,9 +121,9 @@ def sampler_step(process: Process, config: SamplerConfig, x, level_from, level_t
     raise ValueError(f"sampler {config.sampler!r} does not fit {type(process).__name__}; "
                      f"expected one of {process.samplers}")
   if config.sampler == "euler":
-    return euler_step(process, x, level_from, level_to, out)
+    return euler_step(process, x, level_from, level_to, out, config.clip_denoised)
   eta = 1.0 if config.sampler == "ddpm" else config.eta
-  return ddim_step(process, x, level_from, level_to, out, key, eta)
+  return ddim_step(process, x, level_from, level_to, out, key, eta, config.clip_denoised)
 
 
 def classifier_free_guidance(out_cond: jax.Array, out_null: jax.Array, scale: float) -> jax.Array:

@@ -1,0 +1,100 @@
+"""Forward time, achieved FLOP/s and rollout frames/s of any world-model config; writes JSON.
+
+  python benchmarks/forward_rollout.py --config configs/irasim.py:S --batch 1 --frames 30 \
+      [--set model.dtype="'bfloat16'" ...] [--out benchmarks/results/NAME.json]
+
+Forward: one network call on a full window ``[B, c+h, H, W, C]`` (``config.frame_shape``).
+Rollout: ``--frames`` new frames from ``c`` context frames with the config's sampler, context and
+horizon; frames/s counts generated frames over all B rollouts. Times are medians over
+``--repeats`` runs after one compile run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+
+from wmjax.config import load_config
+from wmjax.nn import forward_flops
+from wmjax.rollout import WorldModel, rollout
+
+
+def _median_seconds(fn, repeats: int) -> tuple[float, float]:
+  start = time.perf_counter()
+  jax.block_until_ready(fn())
+  compile_s = time.perf_counter() - start
+  times = []
+  for _ in range(repeats):
+    start = time.perf_counter()
+    jax.block_until_ready(fn())
+    times.append(time.perf_counter() - start)
+  return statistics.median(times), compile_s
+
+
+def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,
+              repeats: int) -> dict:
+  config = load_config(config_spec, overrides)
+  wm = WorldModel.from_config(config)
+  net = wm.network
+  c, h = config.rollout.context, config.rollout.horizon
+  shape = tuple(config.frame_shape)
+  params = wm.init(jax.random.key(0), shape, frames=c + h)
+  n = c + h
+  x = jax.random.normal(jax.random.key(1), (batch, n) + shape)
+  t = jnp.full((batch, n), 500.0)
+  actions = jnp.zeros((batch, n - 1, net.action_dim))
+  forward = jax.jit(net.apply)
+  forward_s, forward_compile_s = _median_seconds(lambda: forward(params, x, t, actions), repeats)
+  flops = forward_flops(net, batch, n, shape[0], shape[1])
+
+  context = jax.random.normal(jax.random.key(2), (batch, c) + shape)
+  rollout_actions = jnp.zeros((batch, frames, net.action_dim))
+  run = lambda: rollout(wm, params, context, rollout_actions, jax.random.key(3), horizon=h)
+  rollout_s, rollout_compile_s = _median_seconds(run, repeats)
+  calls = wm.sampler.model_calls(h) * (2 if wm.sampler.guidance_scale != 1.0 else 1)
+  blocks = -(-frames // h)
+  return {
+      "config": config_spec, "overrides": overrides, "name": config.get("name", config_spec),
+      "device": jax.devices()[0].device_kind, "platform": jax.default_backend(),
+      "num_devices": jax.device_count(), "host": platform.node(), "jax": jax.__version__,
+      "dtype": net.dtype, "batch": batch, "frame_shape": shape, "window_frames": n,
+      "forward_ms": forward_s * 1e3, "forward_compile_s": forward_compile_s,
+      "forward_gflop": flops / 1e9, "forward_tflops_per_s": flops / forward_s / 1e12,
+      "rollout_frames": frames, "context": c, "horizon": h, "sampler": wm.sampler.sampler,
+      "sampling_steps": wm.sampler.num_steps, "model_calls_per_block": calls,
+      "rollout_s": rollout_s, "rollout_compile_s": rollout_compile_s,
+      "rollout_frames_per_s": batch * frames / rollout_s,
+      "rollout_tflops_per_s": blocks * calls * flops / rollout_s / 1e12,
+  }
+
+
+def main():
+  parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  parser.add_argument("--config", required=True, help="config file, optionally file.py:arg")
+  parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                      help="config override, e.g. model.dtype=\"'bfloat16'\" (repeatable)")
+  parser.add_argument("--batch", type=int, default=1)
+  parser.add_argument("--frames", type=int, default=15, help="frames to generate per rollout")
+  parser.add_argument("--repeats", type=int, default=3)
+  parser.add_argument("--out", help="JSON path (default benchmarks/results/<name>.json)")
+  args = parser.parse_args()
+  result = benchmark(args.config, args.set, args.batch, args.frames, args.repeats)
+  print(json.dumps(result, indent=2))
+  out = args.out or os.path.join(
+      os.path.dirname(__file__), "results",
+      f"forward_rollout-{result['name'].replace('/', '_')}-{result['platform']}-b{args.batch}.json")
+  os.makedirs(os.path.dirname(out), exist_ok=True)
+  with open(out, "w") as f:
+    json.dump(result, f, indent=2)
+  print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+  main()
