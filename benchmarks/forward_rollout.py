@@ -87,9 +87,9 @@ def main():
   args = parser.parse_args()
   result = benchmark(args.config, args.set, args.batch, args.frames, args.repeats)
   print(json.dumps(result, indent=2))
-  out = args.out or os.path.join(
-      os.path.dirname(__file__), "results",
-      f"forward_rollout-{result['name'].replace('/', '_')}-{result['platform']}-b{args.batch}.json")
+  tag = result["name"].replace("/", "_") + ("-custom" if args.set else "")
+  out = args.out or os.path.join(os.path.dirname(__file__), "results",
+                                 f"forward_rollout-{tag}-{result['platform']}-b{args.batch}.json")
   os.makedirs(os.path.dirname(out), exist_ok=True)
   with open(out, "w") as f:
     json.dump(result, f, indent=2)

@@ -1,12 +1,20 @@
-"""Shared test helpers: tiny configs of the shipped config files and perturbed parameters."""
+"""Shared test helpers: tiny configs of the shipped config files and perturbed parameters.
 
-from pathlib import Path
+Tests run on 8 simulated CPU devices so that sharding is exercised.
+"""
 
-import jax
-import pytest
+import os
 
-from wmjax.config import load_config
-from wmjax.rollout import WorldModel
+os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                           + " --xla_force_host_platform_device_count=8").strip()
+
+from pathlib import Path  # noqa: E402  (XLA_FLAGS must be set before jax is imported)
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
+
+from wmjax.config import load_config  # noqa: E402
+from wmjax.rollout import WorldModel  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

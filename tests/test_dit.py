@@ -120,6 +120,18 @@ def test_scanned_and_unrolled_layers_agree():
                              model.apply(params, x, t, a), rtol=1e-5, atol=1e-5)
 
 
+def test_remat_changes_nothing_but_memory():
+  model, params, (x, t, a) = _model("frame")
+  rematted = model.clone(remat=True)
+  loss = lambda m: (lambda p: jnp.mean(m.apply(p, x, t, a) ** 2))
+  np.testing.assert_allclose(rematted.apply(params, x, t, a), model.apply(params, x, t, a),
+                             rtol=1e-6, atol=1e-6)
+  g_remat = jax.grad(loss(rematted))(params)
+  g_plain = jax.grad(loss(model))(params)
+  for u, v in zip(jax.tree.leaves(g_remat), jax.tree.leaves(g_plain)):
+    np.testing.assert_allclose(u, v, rtol=1e-5, atol=1e-6)
+
+
 def test_bf16_compute_keeps_float32_params():
   model, params, (x, t, a) = _model("frame")
   bf16 = model.clone(dtype="bfloat16")

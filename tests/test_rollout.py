@@ -60,6 +60,21 @@ def test_scan_rollout_equals_python_loop(config, overrides, c, h, n):
   assert float(jnp.abs(out[:, c:]).mean()) > 0  # frames were generated
 
 
+def test_rollout_sharded_over_the_batch_equals_unsharded():
+  assert jax.device_count() == 8
+  wm, params = tiny_world_model("irasim.py:S", "sampling.num_steps=2")
+  context, actions = _inputs(wm, 8, 1, 5)
+  mesh = jax.make_mesh((8,), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
+  batch = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("data"))
+  rng = jax.random.key(0)
+  sharded = rollout(wm, params, jax.device_put(context, batch), jax.device_put(actions, batch), rng,
+                    horizon=3)
+  assert len(sharded.sharding.device_set) == 8
+  assert sharded.sharding.shard_shape(sharded.shape)[0] == 1
+  np.testing.assert_allclose(sharded, rollout(wm, params, context, actions, rng, horizon=3),
+                             rtol=1e-4, atol=1e-4)
+
+
 def test_context_actions_condition_the_first_block():
   wm, params = tiny_world_model("wpe_600m.py", "sampling.num_steps=2", frame_shape=(8, 8, 16))
   context, actions = _inputs(wm, 1, 3, 4, channels=16)
