@@ -1,6 +1,9 @@
 """The ``wmjax`` command line.
 
   wmjax info --config configs/irasim.py:XL [--config.key=value ...]
+  wmjax data prepare gridworld --data_dir DIR [--num_squares N ...]
+  wmjax data convert SRC_BUILDER_DIR DST_DIR
+  wmjax data stats BUILDER_DIR [--split train] [--recompute]
 
 Config overrides use ``--config.dotted.key=value`` with Python literal values.
 """
@@ -8,6 +11,7 @@ Config overrides use ``--config.dotted.key=value`` with Python literal values.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 
@@ -52,6 +56,61 @@ def cmd_info(args, extra) -> int:
   return 0
 
 
+def cmd_data_prepare(args, extra) -> int:
+  """Write a synthetic dataset as an RLDS TFDS dataset in ArrayRecord (once)."""
+  del extra
+  from wmjax.data import gridworld
+  fields = {f.name: getattr(args, f.name) for f in dataclasses.fields(gridworld.GridworldConfig)}
+  print(gridworld.prepare(args.data_dir, gridworld.GridworldConfig(**fields)))
+  return 0
+
+
+def cmd_data_convert(args, extra) -> int:
+  """Rewrite a TFRecord RLDS dataset (TFDS builder directory) as ArrayRecord."""
+  del extra
+  from wmjax.data.convert import convert_to_array_record
+  print(convert_to_array_record(args.src, args.dst))
+  return 0
+
+
+def cmd_data_stats(args, extra) -> int:
+  """Compute (or show the cached) action statistics and episode lengths of a dataset."""
+  del extra
+  from wmjax.data.sources import action_stats
+  stats = action_stats(args.builder_dir, args.split, args.name, recompute=args.recompute)
+  print(json.dumps(stats.to_dict(), indent=2))
+  return 0
+
+
+def _add_data_commands(sub) -> None:
+  from wmjax.data.gridworld import GridworldConfig
+  data = sub.add_parser("data", help="prepare, convert and summarise datasets")
+  data_sub = data.add_subparsers(dest="data_command", required=True)
+
+  prepare = data_sub.add_parser("prepare", help="write a synthetic dataset (RLDS, ArrayRecord)",
+                                description=cmd_data_prepare.__doc__)
+  prepare.add_argument("dataset", choices=["gridworld"])
+  prepare.add_argument("--data_dir", required=True, help="TFDS data directory to write into")
+  for field in dataclasses.fields(GridworldConfig):
+    prepare.add_argument(f"--{field.name}", type=type(field.default), default=field.default,
+                         help=f"gridworld {field.name} (default {field.default})")
+  prepare.set_defaults(func=cmd_data_prepare)
+
+  convert = data_sub.add_parser("convert", help="TFRecord RLDS -> ArrayRecord (no beam)",
+                                description=cmd_data_convert.__doc__)
+  convert.add_argument("src", help="builder directory, e.g. gs://gresearch/robotics/bridge/0.1.0")
+  convert.add_argument("dst", help="output builder directory (must not exist)")
+  convert.set_defaults(func=cmd_data_convert)
+
+  stats = data_sub.add_parser("stats", help="action statistics, cached as JSON beside the data",
+                              description=cmd_data_stats.__doc__)
+  stats.add_argument("builder_dir")
+  stats.add_argument("--split", default="train")
+  stats.add_argument("--name", default=None, help="dataset spec name (default: the builder's)")
+  stats.add_argument("--recompute", action="store_true")
+  stats.set_defaults(func=cmd_data_stats)
+
+
 def main(argv: list[str] | None = None) -> int:
   parser = argparse.ArgumentParser(
       prog="wmjax", description="Action-conditioned video world models for robot manipulation.")
@@ -60,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
                         description=cmd_info.__doc__)
   info.add_argument("--config", required=True, help="config file, optionally file.py:arg")
   info.set_defaults(func=cmd_info)
+  _add_data_commands(sub)
   args, extra = parser.parse_known_args(argv)
   return args.func(args, extra)
 

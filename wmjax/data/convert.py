@@ -1,0 +1,68 @@
+"""Rewrite a TFRecord RLDS dataset (a TFDS builder directory) as ArrayRecord, without beam or TF.
+
+The records are the same serialized examples in another container, so conversion copies bytes:
+each ``*.tfrecord-XXXXX-of-YYYYY`` shard becomes ``*.array_record-XXXXX-of-YYYYY`` with the same
+examples in the same order, and ``dataset_info.json`` is updated to the new file format. The
+output is written to a temporary directory and renamed into place when complete, so a failure
+never leaves a half-converted dataset; an existing output is never overwritten.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import struct
+from typing import Iterator
+
+from etils import epath
+from tensorflow_datasets.core import file_adapters
+
+
+def tfrecord_records(path: epath.PathLike) -> Iterator[bytes]:
+  """The records of a TFRecord file (length-prefixed frames; CRCs are skipped, not checked)."""
+  with epath.Path(path).open("rb") as f:
+    while header := f.read(12):
+      if len(header) != 12:
+        raise ValueError(f"{path}: truncated TFRecord header")
+      (length,) = struct.unpack("<Q", header[:8])
+      data = f.read(length)
+      if len(data) != length or len(f.read(4)) != 4:
+        raise ValueError(f"{path}: truncated TFRecord record")
+      yield data
+
+
+def convert_to_array_record(src: epath.PathLike, dst: epath.PathLike) -> epath.Path:
+  """Convert the TFRecord builder directory ``src`` into ``dst``; returns ``dst``."""
+  src, dst = epath.Path(src), epath.Path(dst)
+  info_path = src / "dataset_info.json"
+  if not info_path.exists():
+    raise ValueError(f"{src} is not a TFDS dataset directory (no dataset_info.json)")
+  info = json.loads(info_path.read_text())
+  file_format = info.get("fileFormat", "tfrecord")
+  if file_format != "tfrecord":
+    raise ValueError(f"{src} is stored as {file_format}, not tfrecord")
+  if dst.exists():
+    raise ValueError(f"{dst} already exists; refusing to overwrite it")
+  shards = sorted(p for p in src.iterdir() if ".tfrecord-" in p.name)
+  if not shards:
+    raise ValueError(f"{src} holds no *.tfrecord-* shards")
+
+  tmp = dst.parent / f".{dst.name}.incomplete"
+  if tmp.exists():
+    shutil.rmtree(tmp)
+  tmp.mkdir(parents=True)
+  try:
+    for path in src.iterdir():
+      if ".tfrecord-" not in path.name and path.is_file():
+        path.copy(tmp / path.name)
+    for shard in shards:
+      out = tmp / shard.name.replace(".tfrecord-", ".array_record-")
+      file_adapters.ArrayRecordFileAdapter.write_examples(
+          out, ((None, record) for record in tfrecord_records(shard)))
+    info["fileFormat"] = "array_record"
+    (tmp / "dataset_info.json").write_text(json.dumps(info, indent=2))
+    tmp.rename(dst)
+  except BaseException:
+    shutil.rmtree(tmp, ignore_errors=True)
+    raise
+  return dst

@@ -1,0 +1,146 @@
+"""The WPE gridworld (appendix C.1) as a real RLDS TFDS dataset in ArrayRecord.
+
+``n`` coloured squares on a black frame, each with a random initial position; at every step each
+square gets its own 2-D velocity, uniform in ``[-max_speed, max_speed]`` pixels, which is added to
+its position (clipped so the square stays inside the frame). The action is the concatenation of
+the ``n`` velocities ``[vy_0, vx_0, vy_1, vx_1, ...]``; square ``i`` always has colour ``i``, so
+every action slot maps to one square. Each step stores the true square centres
+(``observation/square_positions [n, 2]``, (y, x) pixels) so action-following can be scored
+exactly. Step ``t``'s action moves frame ``t`` to ``t+1``; the last step's action is zero.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import os
+
+import numpy as np
+import tensorflow_datasets as tfds
+from PIL import Image
+
+from wmjax.data import oxe
+
+# Fixed colour per action slot (RGB); more squares than colours is an error.
+COLORS = np.array([(255, 64, 64), (64, 255, 64), (64, 128, 255), (255, 255, 64), (255, 64, 255),
+                   (64, 255, 255), (255, 160, 32), (160, 96, 255)], np.uint8)
+
+oxe.register(oxe.DatasetSpec(
+    "gridworld", "wmjax", "observation/image", "language_instruction", ("action",),
+    oxe.concat_actions("action"), None, None, None, ("observation/square_positions",)))
+
+
+@dataclasses.dataclass(frozen=True)
+class GridworldConfig:
+  """Defaults fit CPU training: 32x32 frames, 2 squares of 6 px, speeds up to 3 px / step."""
+
+  num_squares: int = 2
+  image_size: int = 32
+  square_size: int = 6
+  max_speed: float = 3.0
+  episode_length: int = 32
+  train_episodes: int = 512
+  test_episodes: int = 32
+  seed: int = 0
+
+  def __post_init__(self):
+    if not 1 <= self.num_squares <= len(COLORS):
+      raise ValueError(f"num_squares must be in [1, {len(COLORS)}], got {self.num_squares}")
+    if not 0 < self.square_size < self.image_size:
+      raise ValueError(f"square_size must be in (0, image_size={self.image_size}), got "
+                       f"{self.square_size}")
+    if self.episode_length < 2:
+      raise ValueError(f"episode_length must be >= 2, got {self.episode_length}")
+
+  @property
+  def name(self) -> str:
+    return (f"n{self.num_squares}_s{self.image_size}_q{self.square_size}_v{self.max_speed:g}"
+            f"_l{self.episode_length}_e{self.train_episodes}-{self.test_episodes}_seed{self.seed}")
+
+
+def simulate(config: GridworldConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+  """One episode: square centres ``[L, n, 2]`` and actions ``[L, 2n]`` (last action zero)."""
+  n, length, half = config.num_squares, config.episode_length, config.square_size / 2
+  low, high = half, config.image_size - half
+  centres = np.empty((length, n, 2), np.float32)
+  centres[0] = rng.uniform(low, high, (n, 2))
+  velocities = rng.uniform(-config.max_speed, config.max_speed, (length, n, 2)).astype(np.float32)
+  velocities[-1] = 0.0
+  for t in range(1, length):
+    centres[t] = np.clip(centres[t - 1] + velocities[t - 1], low, high)
+  return centres, velocities.reshape(length, 2 * n)
+
+
+def render(centres: np.ndarray, config: GridworldConfig) -> np.ndarray:
+  """Square centres ``[n, 2]`` -> uint8 frame ``[S, S, 3]``; later squares are drawn on top."""
+  frame = np.zeros((config.image_size, config.image_size, 3), np.uint8)
+  for i, (cy, cx) in enumerate(centres):
+    top = int(round(cy - config.square_size / 2))
+    left = int(round(cx - config.square_size / 2))
+    frame[top:top + config.square_size, left:left + config.square_size] = COLORS[i]
+  return frame
+
+
+def _png(frame: np.ndarray) -> bytes:
+  buffer = io.BytesIO()
+  Image.fromarray(frame).save(buffer, format="PNG")
+  return buffer.getvalue()
+
+
+class Gridworld(tfds.core.GeneratorBasedBuilder):
+  """TFDS builder of the gridworld; one builder config per :class:`GridworldConfig`."""
+
+  VERSION = tfds.core.Version("1.0.0")
+  RELEASE_NOTES = {"1.0.0": "WPE appendix C.1 gridworld with true square positions."}
+
+  def __init__(self, *, gridworld: GridworldConfig, **kwargs):
+    self.gridworld = gridworld
+    super().__init__(config=tfds.core.BuilderConfig(name=gridworld.name), **kwargs)
+
+  def _info(self) -> tfds.core.DatasetInfo:
+    g = self.gridworld
+    step = {
+        "observation": {
+            "image": tfds.features.Image(shape=(g.image_size, g.image_size, 3),
+                                         encoding_format="png"),
+            "square_positions": tfds.features.Tensor(shape=(g.num_squares, 2), dtype=np.float32),
+        },
+        "action": tfds.features.Tensor(shape=(2 * g.num_squares,), dtype=np.float32),
+        "language_instruction": tfds.features.Text(),
+        "reward": tfds.features.Scalar(dtype=np.float32),
+        "discount": tfds.features.Scalar(dtype=np.float32),
+        "is_first": np.bool_, "is_last": np.bool_, "is_terminal": np.bool_,
+    }
+    return tfds.core.DatasetInfo(
+        builder=self, description=__doc__,
+        features=tfds.features.FeaturesDict({
+            "steps": tfds.features.Dataset(step),
+            "episode_metadata": {"episode_id": np.int64},
+        }),
+        metadata=tfds.core.MetadataDict(dataclasses.asdict(g)))
+
+  def _split_generators(self, dl_manager):
+    g = self.gridworld
+    return {"train": self._generate_examples(g.train_episodes, g.seed),
+            "test": self._generate_examples(g.test_episodes, g.seed + 1_000_003)}
+
+  def _generate_examples(self, num_episodes: int, seed: int):
+    g = self.gridworld
+    rng = np.random.default_rng(seed)
+    for episode in range(num_episodes):
+      centres, actions = simulate(g, rng)
+      last = g.episode_length - 1
+      steps = [{
+          "observation": {"image": _png(render(centres[t], g)), "square_positions": centres[t]},
+          "action": actions[t], "language_instruction": "move the squares",
+          "reward": 0.0, "discount": 1.0,
+          "is_first": t == 0, "is_last": t == last, "is_terminal": False,
+      } for t in range(g.episode_length)]
+      yield episode, {"steps": steps, "episode_metadata": {"episode_id": episode}}
+
+
+def prepare(data_dir: str, config: GridworldConfig = GridworldConfig()) -> str:
+  """Write the dataset as ArrayRecord under ``data_dir`` (once); returns the builder directory."""
+  builder = Gridworld(gridworld=config, data_dir=os.fspath(data_dir), file_format="array_record")
+  builder.download_and_prepare()
+  return os.fspath(builder.data_dir)

@@ -1,0 +1,137 @@
+"""grain input pipeline over ArrayRecord RLDS: random-access windows, deterministic shuffling,
+sharding by process, weighted mixtures, normalisation and batching, checkpointable iterators.
+
+  sources = [WindowSource(ArrayRecordEpisodes(dir, "train"), frames=16, stride=1,
+                          resolution=(256, 320))]
+  ds = training_pipeline(sources, [stats], batch_size=8, seed=0)
+  it = iter(ds); batch = next(it); state = it.get_state()   # ... it.set_state(state)
+
+A batch is a dict of numpy arrays with a leading batch axis: ``frames`` float32
+``[B, F, H, W, 3]`` in [-1, 1], ``actions`` float32 ``[B, F-1, A]`` normalised, ``instruction``
+bytes ``[B]``, ``episode`` / ``start`` int64 ``[B]``, ``source`` int64 ``[B]`` (mixture member)
+and the datasets' extras.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import grain
+import numpy as np
+
+from wmjax.data.rlds import make_window, window_starts
+from wmjax.data.sources import ArrayRecordEpisodes
+from wmjax.data.stats import ActionStats
+
+
+class WindowSource:
+  """Random access to every window of ``frames`` frames (stride ``stride``) of an episode source.
+
+  Episodes shorter than ``frames`` are skipped and counted in ``num_skipped_episodes``.
+  """
+
+  def __init__(self, episodes: ArrayRecordEpisodes, frames: int, stride: int,
+               resolution: tuple[int, int] | None):
+    self.episodes, self.frames, self.resolution = episodes, frames, resolution
+    lengths = episodes.lengths()
+    starts = [(e, s) for e, n in enumerate(lengths) for s in window_starts(int(n), frames, stride)]
+    self.index = np.asarray(starts, np.int64).reshape(-1, 2)
+    self.num_skipped_episodes = int((lengths < frames).sum())
+    if len(self.index) == 0:
+      raise ValueError(f"{episodes.builder_dir} [{episodes.split}] has no episode of at least "
+                       f"{frames} steps ({len(lengths)} episodes)")
+
+  @property
+  def spec(self):
+    return self.episodes.spec
+
+  def __len__(self) -> int:
+    return len(self.index)
+
+  def __getitem__(self, k: int) -> dict[str, Any]:
+    episode, start = (int(v) for v in self.index[k])
+    steps = self.episodes.episode(episode, start, start + self.frames)
+    return make_window(steps, start, self.frames, self.resolution, episode)
+
+
+STANDARD_KEYS = ("frames", "actions", "instruction", "episode", "start")
+
+
+class Normalize:
+  """Normalise a window's actions with its dataset's statistics, zero-pad them to ``action_dim``
+  and tag the mixture member. Dataset-specific extras are dropped unless ``keep_extras``
+  (mixtures keep only the keys every dataset has)."""
+
+  def __init__(self, stats: ActionStats, mode: str, action_dim: int, source_id: int,
+               keep_extras: bool = True):
+    self.stats, self.mode, self.action_dim, self.source_id = stats, mode, action_dim, source_id
+    self.keep_extras = keep_extras
+
+  def __call__(self, window: dict[str, Any]) -> dict[str, Any]:
+    actions = self.stats.normalize(window["actions"], self.mode)
+    pad = self.action_dim - actions.shape[-1]
+    out = dict(window) if self.keep_extras else {k: window[k] for k in STANDARD_KEYS}
+    out["actions"] = np.pad(actions, ((0, 0), (0, pad))) if pad else actions
+    out["source"] = np.int64(self.source_id)
+    return out
+
+
+def frames_to_float(batch: dict[str, Any]) -> dict[str, Any]:
+  """uint8 frames -> float32 in [-1, 1] (done last, after workers, to move 4x fewer bytes)."""
+  return dict(batch, frames=batch["frames"].astype(np.float32) / 127.5 - 1.0)
+
+
+def _check_compatible(sources: Sequence[WindowSource], action_dim: int) -> None:
+  shapes = {(s.frames, s.resolution) for s in sources}
+  if len(shapes) > 1:
+    raise ValueError(f"mixed datasets must share frames and resolution, got {sorted(shapes)}")
+  for s in sources:
+    if s.spec.action_dim > action_dim:
+      raise ValueError(f"{s.spec.name} has {s.spec.action_dim}-dim actions, more than the "
+                       f"pipeline's action_dim={action_dim}")
+
+
+def training_pipeline(sources: Sequence[WindowSource], stats: Sequence[ActionStats], *,
+                      batch_size: int, seed: int = 0, weights: Sequence[float] | None = None,
+                      shuffle: bool = True, repeat: bool = True, normalization: str = "mean_std",
+                      action_dim: int | None = None, shard_index: int | None = None,
+                      shard_count: int | None = None, num_workers: int = 0,
+                      drop_remainder: bool = True) -> grain.IterDataset:
+  """Batches of this process's shard of a (weighted) mixture of window sources.
+
+  Each source is sharded by process (``shard_index::shard_count``, default the JAX process),
+  shuffled deterministically (reshuffled every epoch) and repeated, then sources are mixed by
+  ``weights`` (a mixture keeps only the standard keys). ``batch_size`` is per process. Iterators of the result have ``get_state`` /
+  ``set_state``.
+  """
+  if not sources:
+    raise ValueError("training_pipeline needs at least one source")
+  if len(stats) != len(sources):
+    raise ValueError(f"got {len(stats)} action statistics for {len(sources)} sources")
+  if weights is not None and len(weights) != len(sources):
+    raise ValueError(f"got {len(weights)} mixture weights for {len(sources)} sources")
+  if shard_index is None or shard_count is None:
+    import jax
+    shard_index, shard_count = jax.process_index(), jax.process_count()
+  if not 0 <= shard_index < shard_count:
+    raise ValueError(f"shard_index must be in [0, {shard_count}), got {shard_index}")
+  action_dim = action_dim or max(s.spec.action_dim for s in sources)
+  _check_compatible(sources, action_dim)
+
+  members = []
+  for i, (source, source_stats) in enumerate(zip(sources, stats)):
+    ds = grain.MapDataset.source(source)[shard_index::shard_count]
+    if shuffle:
+      ds = ds.shuffle(seed=seed + i)
+    if repeat:
+      ds = ds.repeat()
+    members.append(ds.map(Normalize(source_stats, normalization, action_dim, i,
+                                    keep_extras=len(sources) == 1)))
+  mixed = members[0] if len(members) == 1 else grain.MapDataset.mix(members, weights)
+  batched = mixed.to_iter_dataset().batch(batch_size, drop_remainder=drop_remainder)
+  if num_workers > 0:
+    from absl import flags
+    if not flags.FLAGS.is_parsed():
+      flags.FLAGS.mark_as_parsed()  # grain workers read absl flags
+    batched = batched.mp_prefetch(grain.MultiprocessingOptions(num_workers=num_workers))
+  return batched.map(frames_to_float)
