@@ -115,6 +115,29 @@ def test_missing_key_error_lists_expected_and_found(oxe_data):
   assert oxe.resolve_spec("bridge_dataset", old).layout == "oxe"
 
 
+def test_converted_equals_written_by_tfds_as_array_record(oxe_data, tmp_path):
+  written = oxe_fixtures.build("language_table", str(tmp_path), file_format="array_record")
+  a = ArrayRecordEpisodes(written, "train")
+  b = ArrayRecordEpisodes(oxe_data["language_table"][1], "train")
+  assert len(a) == len(b) == 3
+  for i in range(3):
+    ea, eb = a.episode(i), b.episode(i)
+    assert ea.images == eb.images and ea.instruction == eb.instruction
+    np.testing.assert_array_equal(ea.actions, eb.actions)
+
+
+def test_worker_processes_yield_the_same_batches(grid):
+  builder_dir, _ = grid
+  source = WindowSource(ArrayRecordEpisodes(builder_dir, "train"), 6, 1, None)
+  stats = action_stats(builder_dir)
+  batches = [_batches(iter(training_pipeline([source], [stats], batch_size=4, seed=1,
+                                             shard_index=0, shard_count=1, num_workers=w)), 3)
+             for w in (0, 1)]
+  for a, b in zip(*batches):
+    np.testing.assert_array_equal(a["frames"], b["frames"])
+    np.testing.assert_array_equal(a["actions"], b["actions"])
+
+
 def test_random_access_needs_array_record(oxe_data):
   with pytest.raises(ValueError, match="wmjax data convert"):
     ArrayRecordEpisodes(oxe_data["language_table"][0], "train")
