@@ -1,6 +1,7 @@
-"""Device meshes and global batches.
+"""Device meshes, logical-axis sharding rules and global batches.
 
-Batches are sharded over the batch mesh axes ``('data', 'fsdp')``: each process feeds its own
+Parameters carry logical axis names (``wmjax.nn.layers``); :data:`LOGICAL_RULES` maps them onto
+the ``('data', 'fsdp', 'tensor')`` mesh. Batches are sharded over the batch mesh axes ``('data', 'fsdp')``: each process feeds its own
 slice and :func:`global_batch` assembles the slices into global ``jax.Array``s.
 """
 
@@ -8,9 +9,10 @@ from __future__ import annotations
 
 from typing import Any, Mapping, Sequence
 
+import flax.linen as nn
 import jax
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec
 
 BATCH_AXES = ("data", "fsdp")
 
@@ -40,3 +42,50 @@ def global_batch(local: Mapping[str, Any], mesh: Mesh,
                        f"shards of the mesh {dict(mesh.shape)}")
     out[key] = jax.make_array_from_process_local_data(sharding, value)
   return out
+
+
+# ----------------------------------------------------------------------------- meshes and rules
+
+MESH_AXES = ("data", "fsdp", "tensor")
+
+# Logical parameter / activation axes -> mesh axes: FSDP shards the model width, tensor
+# parallelism the heads and MLP hidden units; stacked layers and small axes stay replicated.
+LOGICAL_RULES = (
+    ("batch", ("data", "fsdp")),
+    ("layers", None),
+    ("embed", "fsdp"),
+    ("mlp", "tensor"),
+    ("heads", "tensor"),
+    ("modulation", "tensor"),
+    ("kv", None),
+    ("freq", None),
+    ("action", None),
+    ("patch", None),
+)
+
+
+def make_mesh(shape: Sequence[int], devices: Sequence[jax.Device] | None = None) -> Mesh:
+  """A ``('data', 'fsdp', 'tensor')`` mesh with Auto axis types (GSPMD); one -1 takes the rest."""
+  devices = list(devices) if devices is not None else jax.devices()
+  shape = list(shape)
+  if len(shape) != 3:
+    raise ValueError(f"mesh shape must give (data, fsdp, tensor), got {shape}")
+  if shape.count(-1) > 1:
+    raise ValueError(f"at most one mesh axis may be -1, got {shape}")
+  if -1 in shape:
+    known = int(np.prod([s for s in shape if s != -1]))
+    if len(devices) % known:
+      raise ValueError(f"{len(devices)} devices do not divide into mesh {shape}")
+    shape[shape.index(-1)] = len(devices) // known
+  if int(np.prod(shape)) != len(devices):
+    raise ValueError(f"mesh {tuple(shape)} needs {int(np.prod(shape))} devices, "
+                     f"{len(devices)} are available")
+  return jax.make_mesh(tuple(shape), MESH_AXES, axis_types=(AxisType.Auto,) * 3,
+                       devices=devices)
+
+
+def logical_shardings(boxed_tree: Any, mesh: Mesh, rules=LOGICAL_RULES) -> Any:
+  """NamedShardings for a tree whose leaves may carry logical axis names (``nn.Partitioned``);
+  the result has the tree's unboxed structure, unnamed leaves replicated."""
+  specs = nn.get_partition_spec(boxed_tree)
+  return nn.logical_to_mesh_sharding(specs, mesh, rules)

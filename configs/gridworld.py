@@ -1,0 +1,36 @@
+"""The built-in default: a small world model of the WPE gridworld (appendix C.1) for CPU.
+
+Pixel space (32x32 RGB), 2 squares -> 4-dim actions, 8-frame windows, WPE objective (per-frame
+noise levels, sigmoid schedule, v prediction) with causal temporal attention, 10-step DDIM.
+"""
+
+import ml_collections
+
+from wmjax.config import model_config, sampling_config
+
+
+def get_config() -> ml_collections.ConfigDict:
+  config = ml_collections.ConfigDict()
+  config.name = "gridworld"
+  config.frame_shape = (32, 32, 3)
+
+  config.data = ml_collections.ConfigDict(dict(
+      dataset="gridworld", data_dir="~/tensorflow_datasets", frames=8, train_stride=1,
+      eval_stride=8, normalization="mean_std", num_workers=0))
+  config.model = model_config(
+      in_channels=3, patch_size=2, depth=4, hidden_size=128, num_heads=4, num_frames=8,
+      action_dim=4, cond="per_frame", action_embed_ratio=0, causal_temporal=True,
+      action_dropout=0.1)
+  config.diffusion = ml_collections.ConfigDict(dict(
+      kind="gaussian", schedule="sigmoid", num_timesteps=1000, prediction="v",
+      regime="per_frame", num_context=1))
+  config.sampling = sampling_config(sampler="ddim", num_steps=10, context_level=15.0,
+                                    clip_denoised=True)
+  config.rollout = ml_collections.ConfigDict(dict(context=1, horizon=7))
+  config.optim = ml_collections.ConfigDict(dict(
+      learning_rate=1e-3, schedule="cosine", warmup_steps=100, total_steps=3000, b1=0.9,
+      b2=0.99, weight_decay=0.0, grad_clip=1.0, ema_decay=0.999, grad_accum=1))
+  config.mesh = (-1, 1, 1)  # (data, fsdp, tensor)
+  config.batch_size = 16  # global
+  config.seed = 0
+  return config

@@ -1,0 +1,60 @@
+"""Train state (params, EMA params, optimiser state, step, RNG) and the AdamW optimiser.
+
+``config.optim`` fields: ``learning_rate``, ``schedule`` ('constant' | 'warmup' | 'cosine'),
+``warmup_steps``, ``total_steps``, ``b1``, ``b2``, ``weight_decay``, ``grad_clip`` (global norm;
+0 disables), ``ema_decay``, ``grad_accum`` (micro-batches per update).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import flax
+import jax
+import jax.numpy as jnp
+import ml_collections
+import optax
+
+SCHEDULES = ("constant", "warmup", "cosine")
+
+
+@flax.struct.dataclass
+class TrainState:
+  step: jax.Array  # int32 scalar: optimiser updates done
+  params: Any
+  ema_params: Any
+  opt_state: optax.OptState
+  rng: jax.Array  # typed PRNG key; step keys are fold_in(rng, step)
+
+
+def learning_rate_schedule(optim: ml_collections.ConfigDict) -> optax.Schedule:
+  lr, warmup = optim.learning_rate, optim.get("warmup_steps", 0)
+  if optim.schedule == "constant":
+    return optax.constant_schedule(lr)
+  if optim.schedule == "warmup":
+    return optax.linear_schedule(0.0, lr, max(warmup, 1))
+  if optim.schedule == "cosine":
+    return optax.warmup_cosine_decay_schedule(0.0, lr, max(warmup, 1), max(optim.total_steps, 2))
+  raise ValueError(f"optim.schedule must be one of {SCHEDULES}, got {optim.schedule!r}")
+
+
+def make_optimizer(optim: ml_collections.ConfigDict) -> optax.GradientTransformation:
+  """AdamW with global-norm clipping and optional gradient accumulation."""
+  tx = optax.adamw(learning_rate_schedule(optim), b1=optim.b1, b2=optim.b2,
+                   weight_decay=optim.weight_decay)
+  if optim.grad_clip > 0:
+    tx = optax.chain(optax.clip_by_global_norm(optim.grad_clip), tx)
+  if optim.get("grad_accum", 1) > 1:
+    tx = optax.MultiSteps(tx, every_k_schedule=optim.grad_accum)
+  return tx
+
+
+def create_train_state(params: Any, tx: optax.GradientTransformation, rng: jax.Array
+                       ) -> TrainState:
+  """A fresh state; ``params`` may carry logical-axis boxes (kept, for sharding rules)."""
+  return TrainState(step=jnp.zeros((), jnp.int32), params=params, ema_params=params,
+                    opt_state=tx.init(params), rng=rng)
+
+
+def ema_update(ema: Any, params: Any, decay: float) -> Any:
+  return jax.tree.map(lambda e, p: decay * e + (1.0 - decay) * p, ema, params)
