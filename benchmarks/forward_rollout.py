@@ -12,8 +12,6 @@ horizon; frames/s counts generated frames over all B rollouts. Times are medians
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import platform
 import statistics
 import time
@@ -21,6 +19,7 @@ import time
 import jax
 import jax.numpy as jnp
 
+from common import add_config_arguments, write_result
 from wmjax.config import load_config
 from wmjax.nn import forward_flops
 from wmjax.rollout import WorldModel, rollout
@@ -77,23 +76,13 @@ def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,
 
 def main():
   parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-  parser.add_argument("--config", required=True, help="config file, optionally file.py:arg")
-  parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                      help="config override, e.g. model.dtype=\"'bfloat16'\" (repeatable)")
+  add_config_arguments(parser)
   parser.add_argument("--batch", type=int, default=1)
   parser.add_argument("--frames", type=int, default=15, help="frames to generate per rollout")
   parser.add_argument("--repeats", type=int, default=3)
-  parser.add_argument("--out", help="JSON path (default benchmarks/results/<name>.json)")
   args = parser.parse_args()
   result = benchmark(args.config, args.set, args.batch, args.frames, args.repeats)
-  print(json.dumps(result, indent=2))
-  tag = result["name"].replace("/", "_") + ("-custom" if args.set else "")
-  out = args.out or os.path.join(os.path.dirname(__file__), "results",
-                                 f"forward_rollout-{tag}-{result['platform']}-b{args.batch}.json")
-  os.makedirs(os.path.dirname(out), exist_ok=True)
-  with open(out, "w") as f:
-    json.dump(result, f, indent=2)
-  print(f"wrote {out}")
+  write_result("forward_rollout", result, args)
 
 
 if __name__ == "__main__":

@@ -4,9 +4,12 @@ Pixel space (32x32 RGB), 2 squares -> 4-dim actions, 8-frame windows, WPE object
 noise levels, sigmoid schedule, v prediction) with causal temporal attention, 10-step DDIM.
 """
 
+import dataclasses
+
 import ml_collections
 
-from wmjax.config import model_config, sampling_config
+from wmjax.config import model_config, optim_config, sampling_config
+from wmjax.data.gridworld import GridworldConfig
 
 
 def get_config() -> ml_collections.ConfigDict:
@@ -16,7 +19,9 @@ def get_config() -> ml_collections.ConfigDict:
 
   config.data = ml_collections.ConfigDict(dict(
       dataset="gridworld", data_dir="~/tensorflow_datasets", frames=8, train_stride=1,
-      eval_stride=8, normalization="mean_std", num_workers=0))
+      eval_stride=8, normalization="mean_std", num_workers=0, train_split="train",
+      eval_split="test"))
+  config.data.gridworld = ml_collections.ConfigDict(dataclasses.asdict(GridworldConfig()))
   config.model = model_config(
       in_channels=3, patch_size=2, depth=4, hidden_size=128, num_heads=4, num_frames=8,
       action_dim=4, cond="per_frame", action_embed_ratio=0, causal_temporal=True,
@@ -27,9 +32,11 @@ def get_config() -> ml_collections.ConfigDict:
   config.sampling = sampling_config(sampler="ddim", num_steps=10, context_level=15.0,
                                     clip_denoised=True)
   config.rollout = ml_collections.ConfigDict(dict(context=1, horizon=7))
-  config.optim = ml_collections.ConfigDict(dict(
-      learning_rate=1e-3, schedule="cosine", warmup_steps=100, total_steps=3000, b1=0.9,
-      b2=0.99, weight_decay=0.0, grad_clip=1.0, ema_decay=0.999, grad_accum=1))
+  config.optim = optim_config(learning_rate=1e-3, schedule="cosine", warmup_steps=100,
+                              total_steps=3000, b2=0.99, grad_clip=1.0, ema_decay=0.999)
+  config.train = ml_collections.ConfigDict(dict(
+      num_steps=3000, log_every=50, checkpoint_every=500, eval_every=1000, eval_windows=32,
+      max_checkpoints=3))
   config.mesh = (-1, 1, 1)  # (data, fsdp, tensor)
   config.batch_size = 16  # global
   config.seed = 0

@@ -6,7 +6,7 @@
 
 import ml_collections
 
-from wmjax.config import model_config, sampling_config
+from wmjax.config import model_config, optim_config, sampling_config
 
 # size: (blocks = spatial + temporal, hidden size, heads); ~33M / 132M / 461M / 679M parameters.
 SIZES = {"S": (12, 384, 6), "B": (12, 768, 12), "L": (24, 1024, 16), "XL": (28, 1152, 16)}
@@ -29,4 +29,10 @@ def get_config(size: str = "XL") -> ml_collections.ConfigDict:
   # IRASim samples with PNDM-50; wmjax uses DDIM-50. Context frames were clean in training.
   config.sampling = sampling_config(sampler="ddim", num_steps=50, context_level=0.0)
   config.rollout = ml_collections.ConfigDict(dict(context=1, horizon=15))
+  # Table 10: AdamW lr 1e-4 constant, betas (0.9, 0.999), no weight decay, clip 0.1, EMA 0.9999,
+  # batch 64.
+  config.optim = optim_config()
+  config.batch_size = 64
+  config.mesh = (-1, 1, 1)
+  config.seed = 0
   return config

@@ -1,5 +1,6 @@
 """The ``wmjax`` command line.
 
+  wmjax train --config configs/gridworld.py --workdir DIR [--config.key=value ...]
   wmjax info --config configs/irasim.py:XL [--config.key=value ...]
   wmjax data prepare gridworld --data_dir DIR [--num_squares N ...]
   wmjax data convert SRC_BUILDER_DIR DST_DIR
@@ -25,6 +26,36 @@ def _config_from_args(args, extra: list[str]):
   if bad:
     raise SystemExit(f"wmjax: unrecognised arguments {bad}; overrides look like --config.key=value")
   return load_config(args.config, extra)
+
+
+def _maybe_initialize_distributed(args) -> None:
+  """``jax.distributed.initialize`` when several processes take part (flags, SLURM or TPU pods)."""
+  import os
+  explicit = args.coordinator_address is not None
+  slurm = int(os.environ.get("SLURM_NTASKS", "1")) > 1
+  if not (explicit or slurm or os.environ.get("TPU_WORKER_HOSTNAMES")):
+    return
+  if jax.config.jax_platforms in (None, "", "cpu") and not os.environ.get("TPU_WORKER_HOSTNAMES"):
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+  if explicit:
+    jax.distributed.initialize(args.coordinator_address, args.num_processes, args.process_id)
+  else:
+    jax.distributed.initialize()
+
+
+def cmd_train(args, extra) -> int:
+  """Train a world model in WORKDIR, resuming from its latest checkpoint if it has one."""
+  from wmjax.train.loop import NonFiniteLossError, train
+  _maybe_initialize_distributed(args)
+  config = _config_from_args(args, extra)
+  try:
+    _, result = train(config, args.workdir)
+  except NonFiniteLossError as e:
+    print(f"wmjax train: {e}", file=sys.stderr)
+    return 1
+  if jax.process_index() == 0:
+    print(json.dumps(result, indent=2))
+  return 0
 
 
 def cmd_info(args, extra) -> int:
@@ -115,6 +146,16 @@ def main(argv: list[str] | None = None) -> int:
   parser = argparse.ArgumentParser(
       prog="wmjax", description="Action-conditioned video world models for robot manipulation.")
   sub = parser.add_subparsers(dest="command", required=True)
+  train = sub.add_parser("train", help="train (or resume) a world model in a workdir",
+                         description=cmd_train.__doc__)
+  train.add_argument("--config", required=True, help="config file, optionally file.py:arg")
+  train.add_argument("--workdir", required=True, help="checkpoints, logs, videos and metrics")
+  train.add_argument("--coordinator_address", default=None,
+                     help="host:port of process 0, for a multi-process run started by hand")
+  train.add_argument("--num_processes", type=int, default=None)
+  train.add_argument("--process_id", type=int, default=None)
+  train.set_defaults(func=cmd_train)
+
   info = sub.add_parser("info", help="parameter count and FLOPs of a config (no allocation)",
                         description=cmd_info.__doc__)
   info.add_argument("--config", required=True, help="config file, optionally file.py:arg")

@@ -65,3 +65,9 @@ def sampling_config(**overrides) -> ml_collections.ConfigDict:
   """Every :class:`wmjax.diffusion.SamplerConfig` field with its default, updated by ``overrides``."""
   from wmjax.diffusion.sampling import SamplerConfig
   return _dataclass_config(SamplerConfig, (), overrides)
+
+
+def optim_config(**overrides) -> ml_collections.ConfigDict:
+  """Every :class:`wmjax.train.state.OptimConfig` field with its default, updated by ``overrides``."""
+  from wmjax.train.state import OptimConfig
+  return _dataclass_config(OptimConfig, (), overrides)

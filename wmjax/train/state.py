@@ -1,12 +1,8 @@
-"""Train state (params, EMA params, optimiser state, step, RNG) and the AdamW optimiser.
-
-``config.optim`` fields: ``learning_rate``, ``schedule`` ('constant' | 'warmup' | 'cosine'),
-``warmup_steps``, ``total_steps``, ``b1``, ``b2``, ``weight_decay``, ``grad_clip`` (global norm;
-0 disables), ``ema_decay``, ``grad_accum`` (micro-batches per update).
-"""
+"""Train state (params, EMA params, optimiser state, step, RNG) and the AdamW optimiser."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import flax
@@ -18,13 +14,29 @@ import optax
 SCHEDULES = ("constant", "warmup", "cosine")
 
 
+@dataclasses.dataclass(frozen=True)
+class OptimConfig:
+  """The fields of ``config.optim``; defaults are IRASim's recipe (paper table 10)."""
+
+  learning_rate: float = 1e-4
+  schedule: str = "constant"  # 'constant' | 'warmup' (linear, then constant) | 'cosine'
+  warmup_steps: int = 0
+  total_steps: int = 300_000  # cosine decay length
+  b1: float = 0.9
+  b2: float = 0.999
+  weight_decay: float = 0.0
+  grad_clip: float = 0.1  # global norm; 0 disables
+  ema_decay: float = 0.9999
+  grad_accum: int = 1  # micro-batches per update
+
+
 @flax.struct.dataclass
 class TrainState:
   step: jax.Array  # int32 scalar: optimiser updates done
   params: Any
   ema_params: Any
   opt_state: optax.OptState
-  rng: jax.Array  # typed PRNG key; step keys are fold_in(rng, step)
+  rng: jax.Array  # uint32 PRNG key data; step keys are fold_in(wrap_key_data(rng), step)
 
 
 def learning_rate_schedule(optim: ml_collections.ConfigDict) -> optax.Schedule:
@@ -53,8 +65,12 @@ def create_train_state(params: Any, tx: optax.GradientTransformation, rng: jax.A
                        ) -> TrainState:
   """A fresh state; ``params`` may carry logical-axis boxes (kept, for sharding rules)."""
   return TrainState(step=jnp.zeros((), jnp.int32), params=params, ema_params=params,
-                    opt_state=tx.init(params), rng=rng)
+                    opt_state=tx.init(params), rng=jax.random.key_data(rng))
 
 
-def ema_update(ema: Any, params: Any, decay: float) -> Any:
-  return jax.tree.map(lambda e, p: decay * e + (1.0 - decay) * p, ema, params)
+def ema_update(ema: Any, params: Any, decay: float, step: jax.Array) -> Any:
+  """EMA with warm-up: the decay used at update ``step`` is ``min(decay, (1+step)/(10+step))``,
+  so that short runs are not dominated by the initial parameters."""
+  step = jnp.asarray(step, jnp.float32)
+  d = jnp.minimum(decay, (1.0 + step) / (10.0 + step))
+  return jax.tree.map(lambda e, p: d * e + (1.0 - d) * p, ema, params)

@@ -21,6 +21,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from wmjax import parallel
 from wmjax.diffusion import diffusion_loss
 from wmjax.rollout import WorldModel
+from wmjax.train.checkpoint import abstract_with_shardings
 from wmjax.train.state import (TrainState, create_train_state, ema_update, learning_rate_schedule,
                                make_optimizer)
 
@@ -32,7 +33,7 @@ def make_train_step(world_model: WorldModel, config: ml_collections.ConfigDict,
   schedule = learning_rate_schedule(config.optim)
 
   def step(state: TrainState, frames: jax.Array, actions: jax.Array):
-    key = jax.random.fold_in(state.rng, state.step)
+    key = jax.random.fold_in(jax.random.wrap_key_data(state.rng), state.step)
     dropout_key, diffusion_key = jax.random.split(key)
 
     def loss_fn(params):
@@ -47,7 +48,7 @@ def make_train_step(world_model: WorldModel, config: ml_collections.ConfigDict,
     params = optax.apply_updates(state.params, updates)
     new_state = state.replace(step=state.step + 1, params=params, opt_state=opt_state,
                               ema_params=ema_update(state.ema_params, params,
-                                                    config.optim.ema_decay))
+                                                    config.optim.ema_decay, state.step))
     metrics = {"loss": loss, "grad_norm": optax.tree.norm(grads),
                "learning_rate": schedule(state.step)}
     return new_state, metrics
@@ -88,6 +89,7 @@ class ShardedTrainer:
 
     abstract = jax.eval_shape(init, jax.random.key(0))
     self.state_shardings = parallel.logical_shardings(abstract, mesh)
+    self.abstract_state = abstract_with_shardings(nn.unbox(abstract), self.state_shardings)
     self.batch_sharding = parallel.batch_sharding(mesh)
     replicated = NamedSharding(mesh, PartitionSpec())
     self.init = jax.jit(lambda rng: nn.unbox(init(rng)), out_shardings=self.state_shardings)

@@ -1,0 +1,30 @@
+"""Shared command-line pieces of the model benchmarks: config arguments and the JSON result."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+import jax
+
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+  parser.add_argument("--config", required=True, help="config file, optionally file.py:arg")
+  parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                      help="config override, e.g. model.dtype=\"'bfloat16'\" (repeatable)")
+  parser.add_argument("--out", default=None,
+                      help="JSON path (default benchmarks/results/<kind>-<name>-<platform>.json)")
+
+
+def write_result(kind: str, result: dict, args: argparse.Namespace) -> str:
+  """Print ``result`` and save it as JSON (``args.out`` or a name from config and platform)."""
+  print(json.dumps(result, indent=2))
+  tag = result["name"].replace("/", "_") + ("-custom" if args.set else "")
+  out = args.out or os.path.join(os.path.dirname(__file__), "results",
+                                 f"{kind}-{tag}-{jax.default_backend()}-b{args.batch}.json")
+  os.makedirs(os.path.dirname(out), exist_ok=True)
+  with open(out, "w") as f:
+    json.dump(result, f, indent=2)
+  print(f"wrote {out}")
+  return out

@@ -1,0 +1,93 @@
+"""Train-step time, samples/s and model FLOP utilisation (MFU) of any config; writes JSON.
+
+  python benchmarks/train_step.py --config configs/irasim.py:XL --batch 8 \
+      --set model.dtype="'bfloat16'" [--set model.remat=True] [--peak_tflops 989]
+
+MFU = analytic model FLOPs of a train step (3 x forward: forward + backward, remat recomputation
+not counted) / step time / peak FLOP/s. The peak defaults to the dense bf16 figure of known
+accelerators (H100 / H200: 989 TFLOP/s, A100: 312); on CPU pass --peak_tflops or MFU is omitted.
+Synthetic batches on a ('data', 'fsdp', 'tensor') mesh of all devices (--mesh, default -1,1,1).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+
+from common import add_config_arguments, write_result
+from wmjax.config import load_config
+from wmjax.nn import forward_flops
+from wmjax.parallel import make_mesh
+from wmjax.rollout import WorldModel
+from wmjax.train.step import ShardedTrainer
+
+PEAK_BF16_TFLOPS = {"H100": 989.0, "H200": 989.0, "A100": 312.0}
+
+
+def peak_tflops(device_kind: str) -> float | None:
+  for name, peak in PEAK_BF16_TFLOPS.items():
+    if name in device_kind:
+      return peak
+  return None
+
+
+def benchmark(spec: str, overrides: list[str], batch: int, frames: int | None, steps: int,
+              mesh_shape: tuple[int, int, int], peak: float | None) -> dict:
+  config = load_config(spec, overrides)
+  wm = WorldModel.from_config(config)
+  frames = frames or wm.network.num_frames
+  shape = tuple(config.frame_shape)
+  trainer = ShardedTrainer(wm, config, make_mesh(mesh_shape), shape, frames)
+  state = trainer.init(jax.random.key(0))
+  x = jax.device_put(jax.random.normal(jax.random.key(1), (batch, frames) + shape),
+                     trainer.batch_sharding)
+  actions = jax.device_put(jnp.zeros((batch, frames - 1, wm.network.action_dim)),
+                           trainer.batch_sharding)
+  start = time.perf_counter()
+  state, metrics = trainer.step(state, x, actions)
+  jax.block_until_ready(metrics)
+  compile_s = time.perf_counter() - start
+  times = []
+  for _ in range(steps):
+    start = time.perf_counter()
+    state, metrics = trainer.step(state, x, actions)
+    jax.block_until_ready(metrics)
+    times.append(time.perf_counter() - start)
+  step_s = statistics.median(times)
+  flops = 3 * forward_flops(wm.network, batch, frames, shape[0], shape[1])
+  device = jax.devices()[0].device_kind
+  peak = peak or peak_tflops(device)
+  achieved = flops / step_s / 1e12
+  return {
+      "config": spec, "overrides": overrides, "name": config.get("name", spec), "device": device,
+      "num_devices": jax.device_count(), "mesh": list(trainer.mesh.shape.values()),
+      "jax": jax.__version__, "dtype": wm.network.dtype, "remat": wm.network.remat,
+      "batch": batch, "frames": frames, "frame_shape": shape, "compile_s": compile_s,
+      "step_ms": step_s * 1e3, "samples_per_s": batch / step_s,
+      "train_tflop_per_step": flops / 1e12, "achieved_tflops_per_s": achieved,
+      "peak_tflops_per_s": peak, "mfu": achieved / (peak * jax.device_count()) if peak else None,
+      "loss": float(metrics["loss"]),
+  }
+
+
+def main():
+  parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  add_config_arguments(parser)
+  parser.add_argument("--batch", type=int, default=8, help="global batch")
+  parser.add_argument("--frames", type=int, default=None, help="default: model.num_frames")
+  parser.add_argument("--steps", type=int, default=5)
+  parser.add_argument("--mesh", default="-1,1,1", help="data,fsdp,tensor")
+  parser.add_argument("--peak_tflops", type=float, default=None, help="per-device peak")
+  args = parser.parse_args()
+  mesh = tuple(int(v) for v in args.mesh.split(","))
+  result = benchmark(args.config, args.set, args.batch, args.frames, args.steps, mesh,
+                     args.peak_tflops)
+  write_result("train_step", result, args)
+
+
+if __name__ == "__main__":
+  main()

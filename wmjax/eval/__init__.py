@@ -1,0 +1,1 @@
+"""Evaluation: video metrics and video files."""

@@ -1,0 +1,280 @@
+"""The training loop behind ``wmjax train``.
+
+Per step: next batch of this process's data shard -> global sharded arrays -> jitted train step.
+Around it: a progress bar (rate, ETA), TensorBoard scalars and ``metrics.jsonl``, periodic
+evaluation (validation loss and rollout PSNR on held-out windows, exact square-position error on
+the gridworld) with a ground truth | prediction GIF, async checkpoints of state + data iterator +
+config + action statistics, resume from the latest checkpoint, a clean stop on SIGTERM, and a
+stop with a clear message on a NaN / inf loss that leaves the last good checkpoint intact.
+
+Workdir layout: ``checkpoints/``, ``tensorboard/``, ``metrics.jsonl``, ``samples/*.gif``,
+``config.json``, and at the end ``metrics.json`` and ``rollout.gif``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import signal
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from wmjax import parallel
+from wmjax.data import gridworld, oxe
+from wmjax.data.pipeline import Normalize, WindowSource, frames_to_float, training_pipeline
+from wmjax.data.rlds import stack_steps
+from wmjax.data.sources import ArrayRecordEpisodes, action_stats
+from wmjax.data.stats import ActionStats
+from wmjax.diffusion import diffusion_loss
+from wmjax.eval import metrics as metrics_lib
+from wmjax.eval.video import side_by_side, write_gif
+from wmjax.rollout import WorldModel, rollout
+from wmjax.train.checkpoint import Checkpointer
+from wmjax.train.step import ShardedTrainer
+
+
+class NonFiniteLossError(RuntimeError):
+  """The loss became NaN or inf; training stopped without saving the bad state."""
+
+
+# ----------------------------------------------------------------------------- data
+
+
+@dataclasses.dataclass
+class TrainData:
+  spec: oxe.DatasetSpec
+  stats: ActionStats
+  train: WindowSource
+  eval: WindowSource
+
+
+def dataset_dir(config: ml_collections.ConfigDict) -> str:
+  """The ArrayRecord builder directory of ``config.data``; the gridworld is generated if missing."""
+  data = config.data
+  if data.dataset == "gridworld":
+    params = gridworld.GridworldConfig(**data.get("gridworld", {}))
+    return gridworld.prepare(os.path.expanduser(data.data_dir), params)
+  if data.dataset not in oxe.SPECS:
+    raise ValueError(f"unknown dataset {data.dataset!r}; known: {sorted(oxe.SPECS)}")
+  if not data.get("builder_dir"):
+    raise ValueError(f"config.data.builder_dir must point at the ArrayRecord builder directory "
+                     f"of {data.dataset} (see `wmjax data convert`)")
+  return os.path.expanduser(data.builder_dir)
+
+
+def build_data(config: ml_collections.ConfigDict) -> TrainData:
+  """Window sources and action statistics, checked against the model before anything compiles."""
+  builder_dir = dataset_dir(config)
+  train_episodes = ArrayRecordEpisodes(builder_dir, config.data.get("train_split", "train"),
+                                       config.data.dataset)
+  spec = train_episodes.spec
+  if spec.action_dim != config.model.action_dim:
+    raise ValueError(f"{spec.name} has {spec.action_dim}-dim actions but the model expects "
+                     f"model.action_dim={config.model.action_dim}")
+  resolution = tuple(config.data.get("resolution") or spec.resolution)
+  if tuple(config.frame_shape) != resolution + (3,):
+    raise ValueError(f"frame_shape {tuple(config.frame_shape)} does not match the data's frames "
+                     f"{resolution + (3,)} (a pixel-space model sees the resized RGB frames)")
+  frames = config.data.frames
+  if frames > config.model.num_frames:
+    raise ValueError(f"data.frames={frames} exceeds model.num_frames={config.model.num_frames}")
+  eval_episodes = ArrayRecordEpisodes(builder_dir, config.data.get("eval_split", "test"),
+                                      config.data.dataset)
+  return TrainData(spec, action_stats(builder_dir, train_episodes.split, config.data.dataset),
+                   WindowSource(train_episodes, frames, config.data.train_stride, resolution),
+                   WindowSource(eval_episodes, frames, config.data.eval_stride, resolution))
+
+
+def eval_windows(data: TrainData, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
+  """The fixed held-out windows evaluated during training, normalised and batched."""
+  count = min(config.train.eval_windows, len(data.eval))
+  normalize = Normalize(data.stats, config.data.normalization, config.model.action_dim, 0)
+  return frames_to_float(stack_steps([normalize(data.eval[k]) for k in range(count)]))
+
+
+# ----------------------------------------------------------------------------- evaluation
+
+
+def evaluate(world_model: WorldModel, params: Any, windows: dict[str, np.ndarray],
+             config: ml_collections.ConfigDict, rng: jax.Array) -> tuple[dict, np.ndarray]:
+  """Validation loss and rollout metrics on ``windows``; returns (metrics, predicted frames)."""
+  frames, actions = jnp.asarray(windows["frames"]), jnp.asarray(windows["actions"])
+  c, h = config.rollout.context, config.rollout.horizon
+  loss_rng, rollout_rng = jax.random.split(rng)
+
+  @jax.jit
+  def validation_loss(params):
+    def denoise(x, levels):
+      return world_model.network.apply(params, x, world_model.process.model_time(levels), actions)
+    return diffusion_loss(denoise, world_model.process, frames, loss_rng, config.diffusion.regime,
+                          config.diffusion.num_context)[0]
+
+  predicted = np.asarray(rollout(world_model, params, frames[:, :c], actions[:, c - 1:],
+                                 rollout_rng, horizon=h))
+  truth = np.asarray(frames)
+  result = {"val_loss": float(validation_loss(params)),
+            "rollout_psnr": float(metrics_lib.psnr(predicted[:, c:], truth[:, c:]).mean()),
+            "copy_last_psnr": float(metrics_lib.psnr(
+                np.broadcast_to(truth[:, c - 1:c], truth[:, c:].shape), truth[:, c:]).mean())}
+  if "square_positions" in windows:
+    true_centres = windows["square_positions"][:, c:]
+    colors = gridworld.COLORS[:true_centres.shape[-2]]
+    penalty = config.frame_shape[0] / 2
+    error, found = metrics_lib.square_position_error(predicted[:, c:], true_centres, colors,
+                                                     penalty)
+    copy_last = np.linalg.norm(windows["square_positions"][:, c - 1:c] - true_centres, axis=-1)
+    result.update(square_error_px=float(error.mean()), square_found=float(found.mean()),
+                  copy_last_square_error_px=float(copy_last.mean()))
+  return result, predicted
+
+
+def write_samples(path: str, truth: np.ndarray, predicted: np.ndarray, count: int = 4) -> str:
+  """GIF with one row per window: ground truth | prediction."""
+  rows = [side_by_side(truth[i], predicted[i]) for i in range(min(count, len(truth)))]
+  return write_gif(path, np.concatenate(rows, axis=1), scale=4 if truth.shape[2] <= 64 else 1)
+
+
+# ----------------------------------------------------------------------------- loop
+
+
+def _batch_fingerprint(batch: dict[str, np.ndarray]) -> str:
+  ids = np.stack([batch["episode"], batch["start"], batch["source"]], -1).astype(np.int64)
+  return hashlib.sha1(ids.tobytes()).hexdigest()[:16]
+
+
+class _StopFlag:
+  """Set by SIGTERM: the loop saves a checkpoint and exits cleanly."""
+
+  def __init__(self):
+    self.requested = False
+    self._previous = signal.signal(signal.SIGTERM, self._handle)
+
+  def _handle(self, signum, frame):
+    del signum, frame
+    self.requested = True
+
+  def restore(self):
+    signal.signal(signal.SIGTERM, self._previous)
+
+
+def train(config: ml_collections.ConfigDict, workdir: str) -> tuple[Any, dict]:
+  """Train (or resume) in ``workdir``; returns the final train state and evaluation metrics."""
+  from tensorboardX import SummaryWriter
+  from tqdm import tqdm
+
+  workdir = os.path.abspath(os.path.expanduser(workdir))
+  os.makedirs(workdir, exist_ok=True)
+  is_chief = jax.process_index() == 0
+  data = build_data(config)
+  mesh = parallel.make_mesh(config.mesh)
+  shards = mesh.shape["data"] * mesh.shape["fsdp"]
+  if config.batch_size % shards or config.batch_size % jax.process_count():
+    raise ValueError(f"global batch_size {config.batch_size} is not divisible by the data-parallel "
+                     f"size {shards} and the {jax.process_count()} processes")
+  world_model = WorldModel.from_config(config)
+  trainer = ShardedTrainer(world_model, config, mesh, tuple(config.frame_shape), config.data.frames)
+  iterator = iter(training_pipeline(
+      [data.train], [data.stats], batch_size=config.batch_size // jax.process_count(),
+      seed=config.seed, normalization=config.data.normalization,
+      action_dim=config.model.action_dim, num_workers=config.data.num_workers))
+  checkpoints = Checkpointer(os.path.join(workdir, "checkpoints"), config.train.max_checkpoints)
+  config_dict, stats_dict = json.loads(config.to_json()), data.stats.to_dict()
+  if is_chief:
+    with open(os.path.join(workdir, "config.json"), "w") as f:
+      f.write(config.to_json(indent=2))
+
+  start = checkpoints.latest_step()
+  if start is None:
+    state, start = trainer.init(jax.random.key(config.seed)), 0
+  else:
+    state, _, _ = checkpoints.restore(start, trainer.abstract_state, iterator)
+    print(f"resumed from step {start} in {checkpoints.directory}", flush=True)
+  windows = eval_windows(data, config)
+  writer = SummaryWriter(os.path.join(workdir, "tensorboard")) if is_chief else None
+  log = open(os.path.join(workdir, "metrics.jsonl"), "a") if is_chief else None
+  stop = _StopFlag()
+  num_steps, train_cfg = config.train.num_steps, config.train
+  last_good = start
+  step = start
+
+  def save(step):
+    nonlocal last_good
+    checkpoints.save(step, state, iterator, config_dict, stats_dict)
+    last_good = step
+
+  def check_finite(loss, step):
+    if not np.isfinite(loss):
+      checkpoints.wait()
+      raise NonFiniteLossError(
+          f"loss is {loss} at step {step}; training stopped. The last good checkpoint (step "
+          f"{last_good}) in {checkpoints.directory} is intact. Lower optim.learning_rate or "
+          f"raise optim.grad_clip and resume.")
+
+  try:
+    bar = tqdm(total=num_steps, initial=start, disable=not is_chief, desc="train",
+               dynamic_ncols=True)
+    tick = time.perf_counter()
+    while step < num_steps and not stop.requested:
+      batch = next(iterator)
+      global_batch = parallel.global_batch({k: batch[k] for k in ("frames", "actions")}, mesh)
+      state, step_metrics = trainer.step(state, global_batch["frames"], global_batch["actions"])
+      step += 1
+      bar.update(1)
+      if step % train_cfg.log_every == 0 or step % train_cfg.checkpoint_every == 0:
+        scalars = {k: float(v) for k, v in step_metrics.items()}
+        check_finite(scalars["loss"], step)
+        now = time.perf_counter()
+        scalars["samples_per_s"] = train_cfg.log_every * config.batch_size / (now - tick)
+        tick = now
+        bar.set_postfix(loss=f"{scalars['loss']:.4f}")
+        if is_chief:
+          for key, value in scalars.items():
+            writer.add_scalar(f"train/{key}", value, step)
+          log.write(json.dumps({"step": step, **scalars,
+                                "batch": _batch_fingerprint(batch)}) + "\n")
+          log.flush()
+      if step % train_cfg.checkpoint_every == 0:
+        save(step)
+      if step % train_cfg.eval_every == 0 and step < num_steps:
+        result, predicted = evaluate(world_model, state.ema_params, windows, config,
+                                     jax.random.key(step))
+        if is_chief:
+          for key, value in result.items():
+            writer.add_scalar(f"eval/{key}", value, step)
+          write_samples(os.path.join(workdir, "samples", f"step_{step:07d}.gif"),
+                        windows["frames"], predicted)
+          bar.write(f"step {step}: " + ", ".join(f"{k}={v:.4g}" for k, v in result.items()))
+    if stop.requested:
+      if step != last_good:
+        save(step)
+      checkpoints.wait()
+      bar.write(f"SIGTERM: saved step {step} to {checkpoints.directory}; exiting")
+      return state, {"step": step, "stopped": "SIGTERM"}
+    if step != last_good:
+      check_finite(float(step_metrics["loss"]), step)
+      save(step)
+    checkpoints.wait()
+    bar.close()
+    result, predicted = evaluate(world_model, state.ema_params, windows, config,
+                                 jax.random.key(num_steps))
+    result["step"] = step
+    if is_chief:
+      write_samples(os.path.join(workdir, "rollout.gif"), windows["frames"], predicted)
+      with open(os.path.join(workdir, "metrics.json"), "w") as f:
+        json.dump(result, f, indent=2)
+      for key, value in result.items():
+        writer.add_scalar(f"eval/{key}", value, step)
+    return state, result
+  finally:
+    stop.restore()
+    checkpoints.close()
+    if writer is not None:
+      writer.close()
+      log.close()
