@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 
+import jax
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
@@ -92,13 +93,9 @@ def test_kill_and_resume_is_bit_identical(data_dir, tmp_path):
   assert sorted(_batches(straight)) == list(range(1, 9))
 
 
-def _flatten(tree, prefix=""):
-  if isinstance(tree, dict):
-    out = {}
-    for k, v in tree.items():
-      out.update(_flatten(v, f"{prefix}/{k}"))
-    return out
-  return {prefix: np.asarray(tree)}
+def _flatten(tree):
+  return {jax.tree_util.keystr(path): np.asarray(leaf)
+          for path, leaf in jax.tree_util.tree_leaves_with_path(tree)}
 
 
 def _free_port():
@@ -126,7 +123,7 @@ def test_two_processes_train_and_agree(data_dir, tmp_path):
 def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(data_dir, tmp_path):
   config = tiny_config("gridworld.py", *_overrides(data_dir, **{
       "optim.learning_rate": 1e12, "optim.grad_clip": 0.0, "optim.schedule": "'constant'",
-      "train.checkpoint_every": 1, "train.num_steps": 20}))
+      "train.checkpoint_every": 1, "train.num_steps": 20, "batch_size": 8}))
   with pytest.raises(NonFiniteLossError, match="last good checkpoint") as error:
     train(config, str(tmp_path))
   latest = ocp.CheckpointManager(str(tmp_path / "checkpoints")).latest_step()
@@ -147,7 +144,7 @@ def test_sigterm_saves_and_exits_cleanly(data_dir, tmp_path):
   process.send_signal(signal.SIGTERM)
   stdout, stderr = process.communicate(timeout=300)
   assert process.returncode == 0, stderr[-2000:]
-  assert "SIGTERM: saved step" in stderr
+  assert "SIGTERM: saved step" in stdout
   step = json.loads(stdout[stdout.index("{"):])["step"]
   assert (tmp_path / "checkpoints" / str(step)).is_dir() and 3 <= step < 100000
 
@@ -159,6 +156,6 @@ def test_sigterm_saves_and_exits_cleanly(data_dir, tmp_path):
     ("frame_shape=(64, 64, 3)", r"frame_shape \(64, 64, 3\) does not match"),
 ])
 def test_bad_setups_fail_before_compilation(data_dir, tmp_path, override, message):
-  config = tiny_config("gridworld.py", *_overrides(data_dir), override)
+  config = tiny_config("gridworld.py", *_overrides(data_dir, batch_size=8), override)
   with pytest.raises(ValueError, match=message):
     train(config, str(tmp_path))
