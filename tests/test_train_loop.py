@@ -9,6 +9,7 @@ import sys
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
@@ -16,6 +17,7 @@ import pytest
 from conftest import ROOT, tiny_config
 from wmjax.data import gridworld
 from wmjax.train.loop import NonFiniteLossError, train
+from wmjax.train.step import ShardedTrainer
 
 
 def _overrides(data_dir, **extra):
@@ -120,15 +122,25 @@ def test_two_processes_train_and_agree(data_dir, tmp_path):
   assert (tmp_path / "run" / "checkpoints" / "3").is_dir()
 
 
-def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(data_dir, tmp_path):
+def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(data_dir, tmp_path, monkeypatch):
+  """From step 4 on the step returns NaN parameters and loss (as a diverged run would)."""
+  real_step = ShardedTrainer.step
+
+  def diverging_step(self, state, frames, actions):
+    state, metrics = real_step(self, state, frames, actions)
+    if int(state.step) >= 4:
+      state = state.replace(params=jax.tree.map(lambda p: p * jnp.nan, state.params))
+      metrics = dict(metrics, loss=metrics["loss"] * jnp.nan)
+    return state, metrics
+
+  monkeypatch.setattr(ShardedTrainer, "step", diverging_step)
   config = tiny_config("gridworld.py", *_overrides(data_dir, **{
-      "optim.learning_rate": 1e12, "optim.grad_clip": 0.0, "optim.schedule": "'constant'",
-      "train.checkpoint_every": 1, "train.num_steps": 20, "batch_size": 8}))
-  with pytest.raises(NonFiniteLossError, match="last good checkpoint") as error:
+      "train.checkpoint_every": 1, "train.num_steps": 10, "batch_size": 8}))
+  with pytest.raises(NonFiniteLossError, match=r"loss is nan at step 4.*last good checkpoint "
+                     r"\(step 3\)"):
     train(config, str(tmp_path))
-  latest = ocp.CheckpointManager(str(tmp_path / "checkpoints")).latest_step()
-  assert latest is not None and f"step {latest})" in str(error.value)
-  for value in _flatten(_state(tmp_path, latest)["params"]).values():
+  assert ocp.CheckpointManager(str(tmp_path / "checkpoints")).latest_step() == 3
+  for value in _flatten(_state(tmp_path, 3)["params"]).values():
     assert np.isfinite(value).all()
 
 

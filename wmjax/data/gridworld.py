@@ -32,12 +32,12 @@ oxe.register(oxe.DatasetSpec(
 
 @dataclasses.dataclass(frozen=True)
 class GridworldConfig:
-  """Defaults fit CPU training: 32x32 frames, 2 squares of 6 px, speeds up to 3 px / step."""
+  """Defaults fit CPU training: 16x16 frames, 2 squares of 4 px, speeds up to 2 px / step."""
 
   num_squares: int = 2
-  image_size: int = 32
-  square_size: int = 6
-  max_speed: float = 3.0
+  image_size: int = 16
+  square_size: int = 4
+  max_speed: float = 2.0
   episode_length: int = 32
   train_episodes: int = 512
   test_episodes: int = 32
