@@ -1,7 +1,7 @@
 """Rewrite a TFRecord RLDS dataset (a TFDS builder directory) as ArrayRecord, without beam or TF.
 
 The records are the same serialized examples in another container, so conversion copies bytes:
-each ``*.tfrecord-XXXXX-of-YYYYY`` shard becomes ``*.array_record-XXXXX-of-YYYYY`` with the same
+each ``*.tfrecord-00000-of-00016`` shard becomes ``*.array_record-00000-of-00016`` with the same
 examples in the same order, and ``dataset_info.json`` is updated to the new file format. The
 output is written to a temporary directory and renamed into place when complete, so a failure
 never leaves a half-converted dataset; an existing output is never overwritten.
