@@ -14,6 +14,7 @@ Workdir layout: ``checkpoints/``, ``tensorboard/``, ``metrics.jsonl``, ``samples
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -102,24 +103,26 @@ def eval_windows(data: TrainData, config: ml_collections.ConfigDict) -> dict[str
 # ----------------------------------------------------------------------------- evaluation
 
 
+@functools.partial(jax.jit, static_argnums=(0, 5, 6))
+def _validation_loss(world_model: WorldModel, params: Any, frames: jax.Array, actions: jax.Array,
+                     rng: jax.Array, regime: str, num_context: int) -> jax.Array:
+  def denoise(x, levels):
+    return world_model.network.apply(params, x, world_model.process.model_time(levels), actions)
+  return diffusion_loss(denoise, world_model.process, frames, rng, regime, num_context)[0]
+
+
 def evaluate(world_model: WorldModel, params: Any, windows: dict[str, np.ndarray],
              config: ml_collections.ConfigDict, rng: jax.Array) -> tuple[dict, np.ndarray]:
   """Validation loss and rollout metrics on ``windows``; returns (metrics, predicted frames)."""
   frames, actions = jnp.asarray(windows["frames"]), jnp.asarray(windows["actions"])
   c, h = config.rollout.context, config.rollout.horizon
   loss_rng, rollout_rng = jax.random.split(rng)
-
-  @jax.jit
-  def validation_loss(params):
-    def denoise(x, levels):
-      return world_model.network.apply(params, x, world_model.process.model_time(levels), actions)
-    return diffusion_loss(denoise, world_model.process, frames, loss_rng, config.diffusion.regime,
-                          config.diffusion.num_context)[0]
-
   predicted = np.asarray(rollout(world_model, params, frames[:, :c], actions[:, c - 1:],
                                  rollout_rng, horizon=h))
   truth = np.asarray(frames)
-  result = {"val_loss": float(validation_loss(params)),
+  val_loss = _validation_loss(world_model, params, frames, actions, loss_rng,
+                              config.diffusion.regime, config.diffusion.num_context)
+  result = {"val_loss": float(val_loss),
             "rollout_psnr": float(metrics_lib.psnr(predicted[:, c:], truth[:, c:]).mean()),
             "copy_last_psnr": float(metrics_lib.psnr(
                 np.broadcast_to(truth[:, c - 1:c], truth[:, c:].shape), truth[:, c:]).mean())}
