@@ -34,7 +34,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.sampling = sampling_config(sampler="ddim", num_steps=10, context_level=15.0,
                                     clip_denoised=True)
   config.rollout = ml_collections.ConfigDict(dict(context=1, horizon=5))
-  config.optim = optim_config(learning_rate=1e-3, schedule="cosine", warmup_steps=100,
+  config.optim = optim_config(learning_rate=3e-3, schedule="cosine", warmup_steps=100,
                               total_steps=1800, b2=0.99, grad_clip=1.0, ema_decay=0.999)
   config.train = ml_collections.ConfigDict(dict(
       num_steps=1800, log_every=50, checkpoint_every=600, eval_every=600, eval_windows=32,
