@@ -15,7 +15,7 @@ whose keys the builder's ``info.features`` holds, or fails listing the keys it e
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping
 
 import numpy as np
 

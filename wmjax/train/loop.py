@@ -119,7 +119,7 @@ def evaluate(world_model: WorldModel, params: Any, windows: dict[str, np.ndarray
   loss_rng, rollout_rng = jax.random.split(rng)
   predicted = np.asarray(rollout(world_model, params, frames[:, :c], actions[:, c - 1:],
                                  rollout_rng, horizon=h))
-  truth = np.asarray(frames)
+  truth = windows["frames"]  # already on the host
   val_loss = _validation_loss(world_model, params, frames, actions, loss_rng,
                               config.diffusion.regime, config.diffusion.num_context)
   result = {"val_loss": float(val_loss),
