@@ -1,18 +1,130 @@
-"""Video metrics used during training: PSNR and the gridworld square-position error."""
+"""Video metrics against the reference libraries (scikit-image, dm-pix, scipy), the gridworld
+square-position error, Fréchet distances and aggregation."""
 
+import dm_pix
 import numpy as np
+import pytest
+import scipy.linalg
+from skimage import metrics as skm
 
 from wmjax.data import gridworld
 from wmjax.eval import metrics
 
 
-def test_psnr_values():
-  a = np.zeros((2, 4, 4, 3), np.float32) - 1.0  # black in [-1, 1]
-  b = a.copy()
-  b[0] += 0.2  # +0.1 in [0, 1] units -> MSE 0.01 -> 20 dB
-  np.testing.assert_allclose(metrics.psnr(b, a), [20.0, 100.0], rtol=1e-6)  # identical: capped
-  as_uint8 = np.round((b + 1) * 127.5).astype(np.uint8)
-  assert abs(metrics.psnr(as_uint8, a)[0] - 20.0) < 0.2
+def _pair(shape, seed=0, noise=40):
+  rng = np.random.default_rng(seed)
+  a = rng.integers(0, 256, shape, dtype=np.uint8)
+  b = np.clip(a.astype(int) + rng.integers(-noise, noise + 1, shape), 0, 255).astype(np.uint8)
+  return a, b
+
+
+def _reference(fn, a, b):
+  """Apply a per-image reference over the leading axes of [E, T, H, W, C]."""
+  return np.array([[fn(a[i, j], b[i, j]) for j in range(a.shape[1])] for i in range(a.shape[0])])
+
+
+def _unit(x):
+  return x.astype(np.float64) / 255.0
+
+
+def test_psnr_equals_scikit_image_and_caps_identical_frames():
+  a, b = _pair((3, 2, 20, 24, 3))
+  expected = _reference(lambda x, y: skm.peak_signal_noise_ratio(_unit(x), _unit(y),
+                                                                 data_range=1.0), b, a)
+  np.testing.assert_allclose(metrics.psnr(b, a), expected, rtol=1e-5)
+  # identical frames: scikit-image says inf; wmjax caps at max_db so that means stay finite
+  np.testing.assert_array_equal(metrics.psnr(a, a), 100.0)
+  np.testing.assert_array_equal(metrics.psnr(a, a, max_db=60.0), 60.0)
+  # [-1, 1] floats and uint8 give the same value
+  as_float = a.astype(np.float32) / 127.5 - 1.0
+  np.testing.assert_allclose(metrics.psnr(b, as_float), expected, rtol=1e-4)
+
+
+def test_ssim_windows_equal_scikit_image_and_dm_pix():
+  a, b = _pair((2, 3, 24, 20, 3), seed=1)
+  gaussian = _reference(lambda x, y: skm.structural_similarity(
+      _unit(x), _unit(y), data_range=1.0, channel_axis=-1, gaussian_weights=True, sigma=1.5,
+      use_sample_covariance=False), a, b)
+  np.testing.assert_allclose(metrics.ssim(a, b, "gaussian"), gaussian, atol=1e-5)
+  pix = dm_pix.ssim(_unit(a).reshape(-1, 24, 20, 3).astype(np.float32),
+                    _unit(b).reshape(-1, 24, 20, 3).astype(np.float32))
+  np.testing.assert_allclose(metrics.ssim(a, b), np.reshape(pix, (2, 3)), atol=1e-6)
+  uniform = _reference(lambda x, y: skm.structural_similarity(_unit(x), _unit(y), data_range=1.0,
+                                                              channel_axis=-1), a, b)
+  np.testing.assert_allclose(metrics.ssim(a, b, "uniform"), uniform, atol=1e-5)
+  np.testing.assert_allclose(metrics.ssim(a, a), 1.0, atol=1e-6)
+
+
+def test_grayscale_metrics_follow_irasim():
+  """IRASim: cv2 BGR->gray on uint8 frames, PSNR with data_range 255, skimage's default SSIM."""
+  a, b = _pair((2, 2, 16, 16, 3), seed=2)
+  gray = np.asarray(metrics.grayscale(a))[..., 0]
+  r, g, b_ = (a[..., i].astype(np.int64) for i in range(3))
+  by_hand = (4899 * r + 9617 * g + 1868 * b_ + 8192) >> 14
+  np.testing.assert_array_equal(np.round(gray * 255).astype(int), by_hand)
+  gray_a = np.round(np.asarray(metrics.grayscale(a))[..., 0] * 255).astype(np.uint8)
+  gray_b = np.round(np.asarray(metrics.grayscale(b))[..., 0] * 255).astype(np.uint8)
+  as_model = lambda g: g[..., None].astype(np.float32) / 127.5 - 1.0
+  np.testing.assert_allclose(
+      metrics.ssim(as_model(gray_b), as_model(gray_a), "uniform"),
+      _reference(skm.structural_similarity, gray_b, gray_a), atol=1e-5)
+  np.testing.assert_allclose(
+      metrics.psnr(as_model(gray_b), as_model(gray_a)),
+      _reference(lambda x, y: skm.peak_signal_noise_ratio(x, y, data_range=255), gray_a, gray_b),
+      rtol=1e-5)
+
+
+def test_mse_latent_l2_and_masked_mse():
+  a, b = _pair((2, 3, 8, 8, 3), seed=3)
+  expected = ((_unit(a) - _unit(b)) ** 2).mean((-3, -2, -1))
+  np.testing.assert_allclose(metrics.mse(a, b), expected, rtol=1e-5)
+  np.testing.assert_allclose(metrics.mse(a, b), _reference(
+      lambda x, y: skm.mean_squared_error(_unit(x), _unit(y)), a, b), rtol=1e-5)
+  x = np.random.default_rng(0).normal(size=(2, 3, 4, 4, 16)).astype(np.float32)
+  np.testing.assert_allclose(metrics.latent_l2(x, 0 * x), (x ** 2).mean((-3, -2, -1)), rtol=1e-5)
+  mask = np.zeros((2, 3, 8, 8), bool)
+  mask[..., 2:5, 1:7] = True
+  mask[1, 2] = False  # an empty mask -> NaN
+  by_hand = ((_unit(a) - _unit(b)) ** 2).mean(-1)
+  expected = np.array([[by_hand[i, j][mask[i, j]].mean() if mask[i, j].any() else np.nan
+                        for j in range(3)] for i in range(2)])
+  np.testing.assert_allclose(metrics.masked_mse(a, b, mask), expected, rtol=1e-5)
+  with pytest.raises(ValueError, match="mask must be"):
+    metrics.masked_mse(a, b, mask[..., :4])
+  with pytest.raises(ValueError, match="shapes differ"):
+    metrics.mse(a, b[:, :2])
+  with pytest.raises(ValueError, match="at least 11x11"):
+    metrics.ssim(a, b)
+
+
+def test_frechet_distance_equals_scipy_sqrtm_formula():
+  rng = np.random.default_rng(0)
+  x = rng.normal(size=(400, 12))
+  y = rng.normal(size=(300, 12)) @ rng.normal(size=(12, 12)) * 0.3 + 0.7
+  a, b = metrics.FeatureMoments(), metrics.FeatureMoments()
+  for chunk in np.array_split(x, 3):  # fed batch by batch
+    a.update(chunk)
+  b.update(y)
+  np.testing.assert_allclose(a.covariance, np.cov(x, rowvar=False), rtol=1e-10)
+  s1, s2 = np.cov(x, rowvar=False), np.cov(y, rowvar=False)
+  expected = (np.sum((x.mean(0) - y.mean(0)) ** 2)
+              + np.trace(s1 + s2 - 2 * scipy.linalg.sqrtm(s1 @ s2).real))
+  np.testing.assert_allclose(metrics.frechet_distance(a, b), expected, rtol=1e-8)
+  assert abs(metrics.frechet_distance(a, a)) < 1e-8
+  # rank-deficient covariances (fewer samples than dimensions) stay finite and non-negative
+  c, d = metrics.FeatureMoments(), metrics.FeatureMoments()
+  c.update(rng.normal(size=(5, 12)))
+  d.update(rng.normal(size=(5, 12)))
+  assert np.isfinite(metrics.frechet_distance(c, d)) and metrics.frechet_distance(c, d) > 0
+
+
+def test_mean_stderr():
+  mean, stderr = metrics.mean_stderr([1.0, 2.0, 3.0, np.nan])
+  assert mean == 2.0 and abs(stderr - 1.0 / np.sqrt(3)) < 1e-12
+  mean, stderr = metrics.mean_stderr([[1.0, np.nan], [3.0, np.nan]], axis=0)
+  np.testing.assert_allclose(mean, [2.0, np.nan])
+  assert np.isnan(stderr[1]) and abs(stderr[0] - 1.0) < 1e-12
+  assert np.isnan(metrics.mean_stderr([5.0])[1])
 
 
 def test_square_positions_are_recovered_from_rendered_frames():

@@ -1,4 +1,5 @@
-"""Blockwise autoregressive rollout: scan == explicit loop, padding, guidance and input checks."""
+"""Blockwise autoregressive rollout: scan == closed-loop environment, padding, guidance and input
+checks."""
 
 import jax
 import jax.numpy as jnp
@@ -6,6 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import tiny_world_model
+from wmjax.env import WorldModelEnv
 from wmjax.rollout import rollout, sample_block
 
 CASES = [  # (config, overrides, c, h, N)
@@ -23,31 +25,19 @@ def _inputs(wm, b, c, n, seed=0, channels=4):
   return context, actions
 
 
-def _explicit_loop(wm, params, context, actions, rng, horizon):
-  """The rollout written as a Python loop over blocks (the semantics the scan must reproduce)."""
-  b, c = context.shape[:2]
-  n, a = actions.shape[1:]
-  num_blocks = -(-n // horizon)
-  padded = jnp.concatenate([actions, jnp.zeros((b, num_blocks * horizon - n, a))], axis=1)
-  known = jnp.concatenate([jnp.ones((b, n), bool), jnp.zeros((b, num_blocks * horizon - n), bool)], 1)
-  history_actions = jnp.zeros((b, c - 1, a))
-  history_known = jnp.zeros((b, c - 1), bool)
-  frames = [context[:, i] for i in range(c)]
-  keys = jax.random.split(rng, num_blocks)
-  for k in range(num_blocks):
-    block = slice(k * horizon, (k + 1) * horizon)
-    window_actions = jnp.concatenate([history_actions, padded[:, block]], axis=1)
-    window_mask = jnp.concatenate([history_known, known[:, block]], axis=1)
-    ctx = jnp.stack(frames[-c:], axis=1)
-    new = sample_block(wm, params, ctx, window_actions, keys[k], window_mask)
-    frames += [new[:, i] for i in range(horizon)]
-    history_actions = window_actions[:, -(c - 1):] if c > 1 else history_actions
-    history_known = window_mask[:, -(c - 1):] if c > 1 else history_known
-  return jnp.stack(frames, axis=1)[:, : c + n]
+def _closed_loop(wm, params, context, actions, rng, horizon):
+  """The rollout driven chunk by chunk through WorldModelEnv (the closed-loop face)."""
+  env = WorldModelEnv(wm, params, context=context.shape[1], horizon=horizon, seed=rng)
+  env.reset(context)
+  for lo in range(0, actions.shape[1], horizon):
+    env.step(actions[:, lo:lo + horizon])
+  return env.video()
 
 
 @pytest.mark.parametrize("config,overrides,c,h,n", CASES)
-def test_scan_rollout_equals_python_loop(config, overrides, c, h, n):
+def test_open_loop_scan_equals_closed_loop_environment(config, overrides, c, h, n):
+  """WorldModelEnv stepped chunk by chunk == the jitted scan, same key and actions (N % h != 0
+  included: the last chunk is shorter)."""
   channels = 16 if config.startswith("wpe") else 4
   wm, params = tiny_world_model(config, *overrides, frame_shape=(8, 8, channels))
   context, actions = _inputs(wm, 2, c, n, channels=channels)
@@ -55,8 +45,9 @@ def test_scan_rollout_equals_python_loop(config, overrides, c, h, n):
   out = rollout(wm, params, context, actions, rng, horizon=h)
   assert out.shape == (2, c + n, 8, 8, channels)
   np.testing.assert_array_equal(out[:, :c], context)
-  expected = _explicit_loop(wm, params, context, actions, rng, h)
-  np.testing.assert_allclose(out, expected, rtol=1e-4, atol=1e-4)
+  expected = _closed_loop(wm, params, context, actions, rng, h)
+  assert expected.shape == out.shape
+  np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-5)
   assert float(jnp.abs(out[:, c:]).mean()) > 0  # frames were generated
 
 
@@ -158,3 +149,18 @@ def test_sample_block_checks_its_window():
                  jnp.ones((2, 3), bool))
   out = sample_block(wm, params, context, jnp.zeros((2, 4, 7)), jax.random.key(0))
   assert out.shape == (2, 3, 8, 8, 4)
+
+
+def test_action_mask_makes_padded_trajectories_match_their_own_rollout():
+  """A trajectory padded with masked actions gets the frames of its own shorter rollout, even in
+  a model whose frames attend to the whole window (frame mode)."""
+  wm, params = tiny_world_model("irasim.py:S", "sampling.num_steps=2")
+  context, actions = _inputs(wm, 2, 1, 6)
+  rng = jax.random.key(5)
+  alone = rollout(wm, params, context, actions[:, :5], rng, horizon=3)
+  mask = jnp.arange(6)[None].repeat(2, 0) < 5
+  padded = rollout(wm, params, context, actions.at[:, 5].set(9.0), rng, horizon=3,
+                   action_mask=mask)
+  np.testing.assert_allclose(padded[:, :6], alone, rtol=1e-5, atol=1e-5)
+  with pytest.raises(ValueError, match=r"action_mask must be \[B, N\]"):
+    rollout(wm, params, context, actions, rng, horizon=3, action_mask=mask[:, :4])

@@ -1,6 +1,8 @@
 """The ``wmjax`` command line.
 
   wmjax train --config configs/gridworld.py --workdir DIR [--config.key=value ...]
+  wmjax evaluate --workdir DIR [--split test] [--protocols short,long,sweep] [--config.key=value]
+  wmjax rollout --workdir DIR --frames FILE [FILE ...] --actions FILE --out DIR
   wmjax info --config configs/irasim.py:XL [--config.key=value ...]
   wmjax data prepare gridworld --data_dir DIR [--num_squares N ...]
   wmjax data convert SRC_BUILDER_DIR DST_DIR
@@ -20,12 +22,16 @@ import jax
 import numpy as np
 
 
-def _config_from_args(args, extra: list[str]):
-  from wmjax.config import load_config
+def _overrides(extra: list[str]) -> list[str]:
   bad = [a for a in extra if not a.startswith("--config.")]
   if bad:
     raise SystemExit(f"wmjax: unrecognised arguments {bad}; overrides look like --config.key=value")
-  return load_config(args.config, extra)
+  return extra
+
+
+def _config_from_args(args, extra: list[str]):
+  from wmjax.config import load_config
+  return load_config(args.config, _overrides(extra))
 
 
 def _maybe_initialize_distributed(args) -> None:
@@ -55,6 +61,67 @@ def cmd_train(args, extra) -> int:
     return 1
   if jax.process_index() == 0:
     print(json.dumps(result, indent=2))
+  return 0
+
+
+def cmd_evaluate(args, extra) -> int:
+  """Evaluate a checkpoint on a held-out split: IRASim short / long trajectories and the WPE
+  context-horizon sweep, model against the copy-last-frame baseline. Writes metrics.json,
+  report.md and per-trajectory videos (ground truth | prediction | difference)."""
+  from wmjax.eval.protocols import evaluate_checkpoint
+  out, results = evaluate_checkpoint(
+      args.workdir, split=args.split, out=args.out, protocols=args.protocols.split(","),
+      step=args.step, params=args.params, batch_size=args.batch_size,
+      max_trajectories=args.max_trajectories, videos=args.videos, num_sets=args.sets,
+      sweep_frames=args.sweep_frames, seed=args.seed, mask_key=args.mask_key,
+      frame_features=args.frame_features, clip_features=args.clip_features,
+      overrides=_overrides(extra))
+  with open(f"{out}/report.md") as f:
+    print(f.read())
+  print(f"wrote {out}/metrics.json, report.md and videos/")
+  return 0
+
+
+def cmd_rollout(args, extra) -> int:
+  """Roll a trained model out from your own start frame(s) under your own raw action sequence
+  (normalised with the checkpoint's statistics); writes rollout.mp4, rollout.gif, grid.png and
+  frames.npy (uint8 [B, c+N, H, W, 3])."""
+  import os
+
+  from wmjax.env import frames_to_model
+  from wmjax.eval import inputs
+  from wmjax.eval import video as video_lib
+  from wmjax.eval.metrics import to_uint8
+  from wmjax.rollout import rollout
+  from wmjax.train.checkpoint import load_model
+
+  model = load_model(args.workdir, step=args.step, params=args.params,
+                     overrides=_overrides(extra))
+  config = model.config
+  frames = inputs.read_frames(args.frames, model.frame_shape, resize=args.resize)
+  actions = inputs.read_actions(args.actions, model.action_stats.action_dim)
+  if len(frames) != len(actions):
+    raise SystemExit(f"wmjax rollout: {len(frames)} start-frame sets but {len(actions)} action "
+                     f"sequences")
+  if not args.normalized:
+    actions = model.action_stats.normalize(actions, config.data.normalization)
+  pad = config.model.action_dim - actions.shape[-1]
+  actions = np.pad(actions, ((0, 0), (0, 0), (0, pad)))
+  c = frames.shape[1]
+  horizon = args.horizon or min(config.rollout.horizon, config.model.num_frames - c)
+  if horizon < 1:
+    raise SystemExit(f"wmjax rollout: {c} context frames leave no room in the model's "
+                     f"{config.model.num_frames}-frame window")
+  out = to_uint8(rollout(model.world_model, model.params, frames_to_model(frames), actions,
+                         jax.random.key(args.seed), horizon=horizon))
+  os.makedirs(args.out, exist_ok=True)
+  np.save(os.path.join(args.out, "frames.npy"), out)
+  video = video_lib.stack_rows(list(out))
+  for name in ("rollout.mp4", "rollout.gif"):
+    video_lib.write_video(os.path.join(args.out, name), video, fps=args.fps)
+  video_lib.write_png(os.path.join(args.out, "grid.png"), video_lib.frame_grid(list(out)))
+  print(f"{out.shape[0]} rollout(s) of {c} context + {out.shape[1] - c} frames (horizon "
+        f"{horizon}, checkpoint step {model.step}) -> {args.out}")
   return 0
 
 
@@ -155,6 +222,49 @@ def main(argv: list[str] | None = None) -> int:
   train.add_argument("--num_processes", type=int, default=None)
   train.add_argument("--process_id", type=int, default=None)
   train.set_defaults(func=cmd_train)
+
+  evaluate = sub.add_parser("evaluate", help="IRASim / WPE evaluation of a checkpoint",
+                            description=cmd_evaluate.__doc__)
+  evaluate.add_argument("--workdir", required=True, help="training workdir with checkpoints/")
+  evaluate.add_argument("--split", default="test", help="split of the training dataset")
+  evaluate.add_argument("--protocols", default="short,long,sweep",
+                        help="comma-separated: short, long (IRASim), sweep (WPE c/h sweep)")
+  evaluate.add_argument("--out", default=None, help="default WORKDIR/eval/SPLIT-stepN")
+  evaluate.add_argument("--step", type=int, default=None, help="checkpoint (default: latest)")
+  evaluate.add_argument("--params", choices=["ema", "raw"], default="ema")
+  evaluate.add_argument("--batch_size", type=int, default=16, help="rollouts at once")
+  evaluate.add_argument("--max_trajectories", type=int, default=None,
+                        help="cap per protocol (default: all)")
+  evaluate.add_argument("--videos", type=int, default=4, help="videos written per protocol")
+  evaluate.add_argument("--sets", type=int, default=4, help="generations per sweep setting")
+  evaluate.add_argument("--sweep_frames", type=int, default=None,
+                        help="target frames of the sweep (default 2 x rollout.horizon)")
+  evaluate.add_argument("--seed", type=int, default=0)
+  evaluate.add_argument("--mask_key", default=None,
+                        help="per-step dataset feature holding arm / object masks (masked MSE)")
+  evaluate.add_argument("--frame_features", default=None, metavar="MODULE:FUNCTION",
+                        help="FID features: frames [N, H, W, 3] in [0, 1] -> [N, D]")
+  evaluate.add_argument("--clip_features", default=None, metavar="MODULE:FUNCTION",
+                        help="FVD features: clips [N, T, H, W, 3] in [0, 1] -> [N, D]")
+  evaluate.set_defaults(func=cmd_evaluate)
+
+  roll = sub.add_parser("rollout", help="roll a checkpoint out from your frames and actions",
+                        description=cmd_rollout.__doc__)
+  roll.add_argument("--workdir", required=True, help="training workdir with checkpoints/")
+  roll.add_argument("--frames", required=True, nargs="+",
+                    help="context frames: image files (in order) or one .npy [c, H, W, 3]")
+  roll.add_argument("--actions", required=True, help=".npy [N, A] / [B, N, A] or .csv (N x A)")
+  roll.add_argument("--out", required=True, help="output directory")
+  roll.add_argument("--step", type=int, default=None, help="checkpoint (default: latest)")
+  roll.add_argument("--params", choices=["ema", "raw"], default="ema")
+  roll.add_argument("--horizon", type=int, default=None,
+                    help="frames per block (default: the config's, fitted to the window)")
+  roll.add_argument("--seed", type=int, default=0)
+  roll.add_argument("--fps", type=float, default=4.0)
+  roll.add_argument("--resize", action="store_true", help="resize frames to the model's size")
+  roll.add_argument("--normalized", action="store_true",
+                    help="the actions are already normalised (skip the checkpoint statistics)")
+  roll.set_defaults(func=cmd_rollout)
 
   info = sub.add_parser("info", help="parameter count and FLOPs of a config (no allocation)",
                         description=cmd_info.__doc__)

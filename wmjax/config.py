@@ -34,6 +34,12 @@ def load_config(spec: str, overrides: Sequence[str] = ()) -> ml_collections.Conf
   if not hasattr(module, "get_config"):
     raise ValueError(f"{path} defines no get_config()")
   config = module.get_config(arg) if arg else module.get_config()
+  return apply_overrides(config, overrides)
+
+
+def apply_overrides(config: ml_collections.ConfigDict, overrides: Sequence[str]
+                    ) -> ml_collections.ConfigDict:
+  """Apply ``dotted.key=value`` overrides in place (see :func:`load_config`); returns ``config``."""
   for item in overrides:
     key, sep, value = item.partition("=")
     if not sep:

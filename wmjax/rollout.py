@@ -166,6 +166,11 @@ def sample_block(world_model: WorldModel, params: Params, context: jax.Array,
 # ----------------------------------------------------------------------------- rollout
 
 
+def block_key(rng: jax.Array, block: int | jax.Array) -> jax.Array:
+  """The key block ``block`` of a rollout (or step ``block`` of an environment) samples with."""
+  return jax.random.fold_in(rng, block)
+
+
 def _rollout(world_model: WorldModel, params: Params, context: jax.Array, actions: jax.Array,
              action_mask: jax.Array, rng: jax.Array, horizon: int, num_frames: int) -> jax.Array:
   """``actions [B, c-1+K*h, A]`` cover the context and K whole blocks; returns ``[B, c+N, ...]``."""
@@ -174,7 +179,7 @@ def _rollout(world_model: WorldModel, params: Params, context: jax.Array, action
   index = np.arange(num_blocks)[:, None] * h + np.arange(c + h - 1)[None, :]  # [K, c+h-1]
   block_actions = jnp.moveaxis(actions[:, index], 1, 0)  # [K, B, c+h-1, A]
   block_mask = jnp.moveaxis(action_mask[:, index], 1, 0)
-  keys = jax.random.split(rng, num_blocks)
+  keys = jax.vmap(block_key, (None, 0))(rng, jnp.arange(num_blocks))
 
   def body(ctx, block):
     window_actions, window_mask, key = block
@@ -192,17 +197,23 @@ _rollout_jit = jax.jit(_rollout, static_argnums=(0, 6, 7))
 
 
 def rollout(world_model: WorldModel, params: Params, context: jax.Array, actions: jax.Array,
-            rng: jax.Array, *, horizon: int, context_actions: jax.Array | None = None
-            ) -> jax.Array:
+            rng: jax.Array, *, horizon: int, context_actions: jax.Array | None = None,
+            action_mask: jax.Array | None = None) -> jax.Array:
   """Roll the model out from ``context [B, c, H, W, C]`` under ``actions [B, N, A]``.
 
   ``actions[:, k]`` moves frame ``c-1+k`` to frame ``c+k``. Blocks of ``horizon`` frames are
   generated one after another; when N is not a multiple of ``horizon`` the last block is padded
   with null actions and its extra frames are dropped. Block ``k`` samples with
-  ``jax.random.split(rng, K)[k]``. ``context_actions [B, c-1, A]`` are the actions between the
-  context frames, if known. Returns every frame, context included: ``[B, c+N, H, W, C]`` float32.
+  :func:`block_key` ``(rng, k)``. ``context_actions [B, c-1, A]`` are the actions between the
+  context frames, if known. ``action_mask [B, N]`` marks real actions: unmarked ones use the null
+  embedding, so a batch of trajectories of different lengths padded to one N gives each the frames
+  it would get alone (up to the sampling noise). Returns every frame, context included:
+  ``[B, c+N, H, W, C]`` float32.
   """
   check_rollout_inputs(world_model, context, actions, horizon, context_actions)
+  if action_mask is not None and tuple(np.shape(action_mask)) != tuple(actions.shape[:2]):
+    raise ValueError(f"action_mask must be [B, N] = {tuple(actions.shape[:2])}, got "
+                     f"{tuple(np.shape(action_mask))}")
   b, c = context.shape[:2]
   n, a = actions.shape[1:]
   num_blocks = math.ceil(n / horizon)
@@ -215,6 +226,7 @@ def rollout(world_model: WorldModel, params: Params, context: jax.Array, actions
   all_actions = jnp.concatenate([jnp.asarray(context_actions, jnp.float32),
                                  jnp.asarray(actions, jnp.float32),
                                  jnp.zeros((b, pad, a), jnp.float32)], axis=1)
-  mask = jnp.concatenate([context_known, jnp.ones((b, n), bool), jnp.zeros((b, pad), bool)], 1)
+  known = jnp.ones((b, n), bool) if action_mask is None else jnp.asarray(action_mask, bool)
+  mask = jnp.concatenate([context_known, known, jnp.zeros((b, pad), bool)], 1)
   return _rollout_jit(world_model, params, jnp.asarray(context), all_actions, mask, rng,
                       horizon, c + n)

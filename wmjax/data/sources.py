@@ -17,10 +17,11 @@ import json
 import os
 from typing import Any, Iterator
 
+import ml_collections
 import numpy as np
 import tensorflow_datasets as tfds
 
-from wmjax.data import oxe
+from wmjax.data import gridworld, oxe
 from wmjax.data.rlds import Episode, skip_image_decoding, stack_steps
 from wmjax.data.stats import STATS_FILE, ActionStats
 
@@ -151,3 +152,17 @@ def action_stats(builder_dir: str, split: str = "train", name: str | None = None
   stats = ActionStats.compute(np.concatenate(actions), spec.name, spec.gripper_dim)
   write_cached_json(builder_dir, STATS_FILE, stats.to_dict())
   return stats
+
+
+def dataset_dir(config: ml_collections.ConfigDict) -> str:
+  """The ArrayRecord builder directory of ``config.data``; the gridworld is generated if missing."""
+  data = config.data
+  if data.dataset == "gridworld":
+    params = gridworld.GridworldConfig(**data.get("gridworld", {}))
+    return gridworld.prepare(os.path.expanduser(data.data_dir), params)
+  if data.dataset not in oxe.SPECS:
+    raise ValueError(f"unknown dataset {data.dataset!r}; known: {sorted(oxe.SPECS)}")
+  if not data.get("builder_dir"):
+    raise ValueError(f"config.data.builder_dir must point at the ArrayRecord builder directory "
+                     f"of {data.dataset} (see `wmjax data convert`)")
+  return os.path.expanduser(data.builder_dir)

@@ -7,12 +7,19 @@ or kill during a save leaves the previous checkpoints intact.
 
 from __future__ import annotations
 
+import dataclasses
 import os
-from typing import Any
+from typing import Any, Sequence
 
+import flax.linen as nn
 import grain
 import jax
+import ml_collections
 import orbax.checkpoint as ocp
+
+from wmjax.config import apply_overrides
+from wmjax.data.stats import ActionStats
+from wmjax.rollout import WorldModel
 
 
 class Checkpointer:
@@ -55,3 +62,62 @@ def abstract_with_shardings(abstract: Any, shardings: Any) -> Any:
   """ShapeDtypeStructs carrying the shardings to restore into."""
   return jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), abstract,
                       shardings)
+
+
+# ----------------------------------------------------------------------------- inference
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadedModel:
+  """A trained world model ready for rollouts, read from a training workdir."""
+
+  config: ml_collections.ConfigDict
+  world_model: WorldModel
+  params: Any  # EMA or raw parameters, replicated over the local devices
+  action_stats: ActionStats
+  step: int
+
+  @property
+  def frame_shape(self) -> tuple[int, int, int]:
+    return tuple(self.config.frame_shape)
+
+
+def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
+               overrides: Sequence[str] = ()) -> LoadedModel:
+  """The parameters (``params='ema'`` or ``'raw'``), config and action statistics of a training
+  checkpoint in ``workdir`` (the latest, or ``step``); nothing else of the train state is read.
+  ``overrides`` (``dotted.key=value``) change inference settings such as ``sampling.num_steps``."""
+  if params not in ("ema", "raw"):
+    raise ValueError(f"params must be 'ema' or 'raw', got {params!r}")
+  directory = os.path.join(os.path.abspath(os.path.expanduser(workdir)), "checkpoints")
+  if not os.path.isdir(directory):
+    raise FileNotFoundError(f"{workdir} holds no checkpoints/ directory; train a model there "
+                            f"first (wmjax train --workdir {workdir})")
+  manager = ocp.CheckpointManager(directory, options=ocp.CheckpointManagerOptions(create=False))
+  try:
+    steps = manager.all_steps()
+    if not steps:
+      raise FileNotFoundError(f"{directory} holds no complete checkpoint")
+    if step is None:
+      step = max(steps)
+    elif step not in steps:
+      raise ValueError(f"no checkpoint for step {step} in {directory}; steps: {sorted(steps)}")
+    meta = manager.restore(step, args=ocp.args.Composite(
+        config=ocp.args.JsonRestore(), action_stats=ocp.args.JsonRestore()))
+    config = apply_overrides(ml_collections.ConfigDict(meta.config), overrides)
+    world_model = WorldModel.from_config(config)
+    frame_shape = tuple(config.frame_shape)
+    abstract = nn.unbox(jax.eval_shape(
+        lambda: world_model.init(jax.random.key(0), frame_shape, config.data.frames)))
+    replicated = jax.sharding.NamedSharding(
+        jax.make_mesh((jax.local_device_count(),), ("replica",),
+                      axis_types=(jax.sharding.AxisType.Auto,), devices=jax.local_devices()),
+        jax.sharding.PartitionSpec())
+    key = "ema_params" if params == "ema" else "params"
+    target = {key: abstract_with_shardings(abstract, jax.tree.map(lambda _: replicated, abstract))}
+    restored = manager.restore(step, args=ocp.args.Composite(
+        state=ocp.args.PyTreeRestore(target, partial_restore=True)))
+  finally:
+    manager.close()
+  return LoadedModel(config, world_model, restored.state[key],
+                     ActionStats.from_dict(meta.action_stats), int(step))

@@ -31,11 +31,11 @@ from wmjax import parallel
 from wmjax.data import gridworld, oxe
 from wmjax.data.pipeline import Normalize, WindowSource, frames_to_float, training_pipeline
 from wmjax.data.rlds import stack_steps
-from wmjax.data.sources import ArrayRecordEpisodes, action_stats
+from wmjax.data.sources import ArrayRecordEpisodes, action_stats, dataset_dir
 from wmjax.data.stats import ActionStats
 from wmjax.diffusion import diffusion_loss
 from wmjax.eval import metrics as metrics_lib
-from wmjax.eval.video import side_by_side, write_gif
+from wmjax.eval.video import comparison, stack_rows, write_video
 from wmjax.rollout import WorldModel, rollout
 from wmjax.train.checkpoint import Checkpointer
 from wmjax.train.step import ShardedTrainer
@@ -54,20 +54,6 @@ class TrainData:
   stats: ActionStats
   train: WindowSource
   eval: WindowSource
-
-
-def dataset_dir(config: ml_collections.ConfigDict) -> str:
-  """The ArrayRecord builder directory of ``config.data``; the gridworld is generated if missing."""
-  data = config.data
-  if data.dataset == "gridworld":
-    params = gridworld.GridworldConfig(**data.get("gridworld", {}))
-    return gridworld.prepare(os.path.expanduser(data.data_dir), params)
-  if data.dataset not in oxe.SPECS:
-    raise ValueError(f"unknown dataset {data.dataset!r}; known: {sorted(oxe.SPECS)}")
-  if not data.get("builder_dir"):
-    raise ValueError(f"config.data.builder_dir must point at the ArrayRecord builder directory "
-                     f"of {data.dataset} (see `wmjax data convert`)")
-  return os.path.expanduser(data.builder_dir)
 
 
 def build_data(config: ml_collections.ConfigDict) -> TrainData:
@@ -139,9 +125,9 @@ def evaluate(world_model: WorldModel, params: Any, windows: dict[str, np.ndarray
 
 
 def write_samples(path: str, truth: np.ndarray, predicted: np.ndarray, count: int = 4) -> str:
-  """GIF with one row per window: ground truth | prediction."""
-  rows = [side_by_side(truth[i], predicted[i]) for i in range(min(count, len(truth)))]
-  return write_gif(path, np.concatenate(rows, axis=1), scale=4 if truth.shape[2] <= 64 else 1)
+  """Video (GIF or mp4) with one row per window: ground truth | prediction | difference."""
+  rows = [comparison(truth[i], predicted[i]) for i in range(min(count, len(truth)))]
+  return write_video(path, stack_rows(rows))
 
 
 # ----------------------------------------------------------------------------- loop
