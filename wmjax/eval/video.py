@@ -7,6 +7,7 @@ Videos are ``[T, H, W, 3]``, uint8 or floats in [-1, 1].
 from __future__ import annotations
 
 import os
+import warnings
 
 import imageio_ffmpeg
 import numpy as np
@@ -78,7 +79,9 @@ def write_video(path: str, video, fps: float = 4.0, scale: int | None = None) ->
   writer = imageio_ffmpeg.write_frames(path, (video.shape[2], video.shape[1]), fps=fps,
                                        codec="libx264", quality=8, macro_block_size=1,
                                        output_params=["-loglevel", "error"])
-  writer.send(None)
+  with warnings.catch_warnings():  # JAX warns on any fork; ffmpeg is a fork + exec
+    warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
+    writer.send(None)
   for frame in video:
     writer.send(np.ascontiguousarray(frame))
   writer.close()
@@ -95,7 +98,9 @@ def read_video(path: str) -> np.ndarray:
         frames.append(np.asarray(image.convert("RGB")))
     return np.stack(frames)
   reader = imageio_ffmpeg.read_frames(path)
-  meta = next(reader)
+  with warnings.catch_warnings():
+    warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
+    meta = next(reader)
   width, height = meta["size"]
   return np.stack([np.frombuffer(f, np.uint8).reshape(height, width, 3) for f in reader])
 

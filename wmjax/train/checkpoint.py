@@ -116,7 +116,9 @@ def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
     key = "ema_params" if params == "ema" else "params"
     target = {key: abstract_with_shardings(abstract, jax.tree.map(lambda _: replicated, abstract))}
     restored = manager.restore(step, args=ocp.args.Composite(
-        state=ocp.args.PyTreeRestore(target, partial_restore=True)))
+        state=ocp.args.PyTreeRestore(target, partial_restore=True,
+                                     restore_args=ocp.checkpoint_utils.construct_restore_args(
+                                         target))))
   finally:
     manager.close()
   return LoadedModel(config, world_model, restored.state[key],

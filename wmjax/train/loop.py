@@ -28,13 +28,13 @@ import ml_collections
 import numpy as np
 
 from wmjax import parallel
-from wmjax.data import gridworld, oxe
+from wmjax.data import oxe
 from wmjax.data.pipeline import Normalize, WindowSource, frames_to_float, training_pipeline
 from wmjax.data.rlds import stack_steps
 from wmjax.data.sources import ArrayRecordEpisodes, action_stats, dataset_dir
 from wmjax.data.stats import ActionStats
 from wmjax.diffusion import diffusion_loss
-from wmjax.eval import metrics as metrics_lib
+from wmjax.eval.protocols import frame_metrics
 from wmjax.eval.video import comparison, stack_rows, write_video
 from wmjax.rollout import WorldModel, rollout
 from wmjax.train.checkpoint import Checkpointer
@@ -108,19 +108,12 @@ def evaluate(world_model: WorldModel, params: Any, windows: dict[str, np.ndarray
   truth = windows["frames"]  # already on the host
   val_loss = _validation_loss(world_model, params, frames, actions, loss_rng,
                               config.diffusion.regime, config.diffusion.num_context)
-  result = {"val_loss": float(val_loss),
-            "rollout_psnr": float(metrics_lib.psnr(predicted[:, c:], truth[:, c:]).mean()),
-            "copy_last_psnr": float(metrics_lib.psnr(
-                np.broadcast_to(truth[:, c - 1:c], truth[:, c:].shape), truth[:, c:]).mean())}
-  if "square_positions" in windows:
-    true_centres = windows["square_positions"][:, c:]
-    colors = gridworld.COLORS[:true_centres.shape[-2]]
-    penalty = config.frame_shape[0] / 2
-    error, found = metrics_lib.square_position_error(predicted[:, c:], true_centres, colors,
-                                                     penalty)
-    copy_last = np.linalg.norm(windows["square_positions"][:, c - 1:c] - true_centres, axis=-1)
-    result.update(square_error_px=float(error.mean()), square_found=float(found.mean()),
-                  copy_last_square_error_px=float(copy_last.mean()))
+  extras = {k: windows[k][:, c:] for k in ("square_positions",) if k in windows}
+  copy_last = np.broadcast_to(truth[:, c - 1:c], truth[:, c:].shape)
+  result = {"val_loss": float(val_loss)}
+  for prefix, candidate in (("rollout", predicted[:, c:]), ("copy_last", copy_last)):
+    for name, values in frame_metrics(candidate, truth[:, c:], extras).items():
+      result[f"{prefix}_{name}"] = float(np.nanmean(values))
   return result, predicted
 
 
