@@ -10,6 +10,7 @@ import dataclasses
 
 import ml_collections
 
+from wmjax.codecs import codec_config
 from wmjax.config import model_config, optim_config, sampling_config
 from wmjax.data.gridworld import GridworldConfig
 
@@ -18,6 +19,7 @@ def get_config() -> ml_collections.ConfigDict:
   config = ml_collections.ConfigDict()
   config.name = "gridworld"
   config.frame_shape = (16, 16, 3)
+  config.codec = codec_config(kind="pixel")  # the model sees RGB in [-1, 1]
 
   config.data = ml_collections.ConfigDict(dict(
       dataset="gridworld", data_dir="~/tensorflow_datasets", frames=6, train_stride=1,

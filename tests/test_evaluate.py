@@ -12,6 +12,7 @@ from PIL import Image
 
 from conftest import ROOT, tiny_world_model
 from wmjax import cli
+from wmjax.codecs import PixelCodec
 from wmjax.config import load_config
 from wmjax.data import gridworld
 from wmjax.data.stats import ActionStats
@@ -94,7 +95,7 @@ def test_read_frames_and_actions(tmp_path):
 def _loaded(wm, params, config_name="irasim.py:S"):
   config = load_config(str(ROOT / "configs" / config_name))
   stats = ActionStats.compute(np.random.default_rng(0).normal(size=(50, 7)), "toy", None)
-  return LoadedModel(config, wm, params, stats, 0)
+  return LoadedModel(config, wm, params, stats, 0, PixelCodec())
 
 
 def test_run_rollouts_scores_only_real_frames():
@@ -226,8 +227,8 @@ def test_rollout_command_applies_the_checkpoint_normalisation(workdir, tmp_path)
   assert frames.shape == (1, 8, 16, 16, 3)
   start = gridworld.render(centres[0], config)[None, None].astype(np.float32) / 127.5 - 1.0
   normalised = model.action_stats.normalize(raw_actions[None, :7], "mean_std")
-  expected = rollout(model.world_model, model.params, start, normalised, jax.random.key(3),
-                     horizon=5)
+  expected = rollout(model.world_model, model.params, start, normalised,
+                     jax.random.split(jax.random.key(3))[1], horizon=5)
   np.testing.assert_array_equal(frames, np.round((np.asarray(expected) + 1) * 127.5).astype(
       np.uint8))
   for name in ("rollout.mp4", "rollout.gif", "grid.png"):

@@ -6,6 +6,7 @@
   wmjax info --config configs/irasim.py:XL [--config.key=value ...]
   wmjax data prepare gridworld --data_dir DIR [--num_squares N ...]
   wmjax data convert SRC_BUILDER_DIR DST_DIR
+  wmjax data encode --config FILE --out DIR [--splits train,test]
   wmjax data stats BUILDER_DIR [--split train] [--recompute]
 
 Config overrides use ``--config.dotted.key=value`` with Python literal values.
@@ -98,7 +99,7 @@ def cmd_rollout(args, extra) -> int:
   model = load_model(args.workdir, step=args.step, params=args.params,
                      overrides=_overrides(extra))
   config = model.config
-  frames = inputs.read_frames(args.frames, model.frame_shape, resize=args.resize)
+  frames = inputs.read_frames(args.frames, model.image_shape, resize=args.resize)
   actions = inputs.read_actions(args.actions, model.action_stats.action_dim)
   if len(frames) != len(actions):
     raise SystemExit(f"wmjax rollout: {len(frames)} start-frame sets but {len(actions)} action "
@@ -112,8 +113,10 @@ def cmd_rollout(args, extra) -> int:
   if horizon < 1:
     raise SystemExit(f"wmjax rollout: {c} context frames leave no room in the model's "
                      f"{config.model.num_frames}-frame window")
-  out = to_uint8(rollout(model.world_model, model.params, frames_to_model(frames), actions,
-                         jax.random.key(args.seed), horizon=horizon))
+  encode_key, rollout_key = jax.random.split(jax.random.key(args.seed))
+  context = model.codec.encode(frames_to_model(frames), encode_key)
+  out = to_uint8(model.codec.decode(rollout(model.world_model, model.params, context, actions,
+                                            rollout_key, horizon=horizon)))
   os.makedirs(args.out, exist_ok=True)
   np.save(os.path.join(args.out, "frames.npy"), out)
   video = video_lib.stack_rows(list(out))
@@ -180,6 +183,31 @@ def cmd_data_stats(args, extra) -> int:
   return 0
 
 
+def cmd_data_encode(args, extra) -> int:
+  """Encode a dataset's episodes with the config's codec into ArrayRecord latents (IRASim's
+  pre-encoding); train from them with --config.data.latents_dir=OUT."""
+  import itertools
+
+  from wmjax.codecs import make_codec
+  from wmjax.data.latents import codec_description, encode_dataset
+  from wmjax.data.sources import ArrayRecordEpisodes, action_stats, dataset_dir
+  from wmjax.env import frames_to_model
+
+  config = _config_from_args(args, extra)
+  codec = make_codec(config.get("codec"))
+  builder_dir = dataset_dir(config.data)
+  splits = args.splits.split(",")
+  spec = ArrayRecordEpisodes(builder_dir, splits[0], config.data.dataset).spec
+  resolution = tuple(config.data.get("resolution") or spec.resolution)
+  stats = action_stats(builder_dir, config.data.get("train_split", "train"), config.data.dataset)
+  keys = (jax.random.fold_in(jax.random.key(args.seed), i) for i in itertools.count())
+  out = encode_dataset(builder_dir, args.out, splits, config.data.dataset, resolution,
+                       lambda frames: np.asarray(codec.encode(frames_to_model(frames), next(keys))),
+                       codec_description(config.get("codec")), stats.to_dict())
+  print(out)
+  return 0
+
+
 def _add_data_commands(sub) -> None:
   from wmjax.data.gridworld import GridworldConfig
   data = sub.add_parser("data", help="prepare, convert and summarise datasets")
@@ -199,6 +227,14 @@ def _add_data_commands(sub) -> None:
   convert.add_argument("src", help="builder directory, e.g. gs://gresearch/robotics/bridge/0.1.0")
   convert.add_argument("dst", help="output builder directory (must not exist)")
   convert.set_defaults(func=cmd_data_convert)
+
+  encode = data_sub.add_parser("encode", help="pre-encode a dataset with the config's codec",
+                               description=cmd_data_encode.__doc__)
+  encode.add_argument("--config", required=True, help="config file, optionally file.py:arg")
+  encode.add_argument("--out", required=True, help="output directory (must not exist)")
+  encode.add_argument("--splits", default="train,test", help="comma-separated splits")
+  encode.add_argument("--seed", type=int, default=0, help="for codecs that sample latents")
+  encode.set_defaults(func=cmd_data_encode)
 
   stats = data_sub.add_parser("stats", help="action statistics, cached as JSON beside the data",
                               description=cmd_data_stats.__doc__)

@@ -4,20 +4,26 @@ Each :meth:`WorldModelEnv.step` takes an action chunk of up to ``horizon`` raw a
 environment, normalises it with the checkpoint's action statistics, generates the frames that
 follow with one jitted block (:func:`wmjax.rollout.sample_block`) and slides the context window.
 Step ``k`` samples with ``block_key(rng, k)``, so a policy that sends the same chunks gets the
-frames of the open-loop :func:`wmjax.rollout.rollout` with the same key. Frames are float32 in
-[-1, 1] (the model's space); every frame of the episode is kept for :meth:`video`.
+frames of the open-loop :func:`wmjax.rollout.rollout` with the same key. Frames go in and come
+out as RGB (float32 in [-1, 1]; uint8 accepted): a latent model's codec encodes the initial frames
+and decodes the generated ones, while the window stays in the model's space. Every frame of the
+episode is kept for :meth:`video`.
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.stats import ActionStats
 from wmjax.rollout import WorldModel, block_key, sample_block
+
+if TYPE_CHECKING:
+  from wmjax.train.checkpoint import LoadedModel
 
 RewardFn = Callable[[np.ndarray, str | list[str] | None], np.ndarray]
 
@@ -37,13 +43,15 @@ class WorldModelEnv:
   ``c + h`` must fit the model's ``num_frames``. ``action_stats`` / ``normalization``: how raw
   actions are normalised (``None``: actions are already normalised). ``reward_fn(new_frames
   [B, k, H, W, C], instruction) -> [B]`` gives the step reward (0 without one). ``max_steps``:
-  frames after which an episode is truncated.
+  frames after which an episode is truncated. ``codec``: RGB <-> the model's space (default:
+  pixels); ``frame_shape``: the RGB frames ``(H, W, C)`` reset must get, if checked.
   """
 
   def __init__(self, world_model: WorldModel, params: Any, *, context: int, horizon: int,
                action_stats: ActionStats | None = None, normalization: str = "mean_std",
                frame_shape: tuple[int, int, int] | None = None, seed: int | jax.Array = 0,
-               reward_fn: RewardFn | None = None, max_steps: int | None = None):
+               reward_fn: RewardFn | None = None, max_steps: int | None = None,
+               codec: Codec | None = None):
     num_frames = world_model.network.num_frames
     if context < 1 or horizon < 1 or context + horizon > num_frames:
       raise ValueError(f"need context >= 1, horizon >= 1 and context + horizon <= {num_frames} "
@@ -54,8 +62,20 @@ class WorldModelEnv:
     self.frame_shape = None if frame_shape is None else tuple(frame_shape)
     self.rng = jax.random.key(seed) if isinstance(seed, int) else seed
     self.reward_fn, self.max_steps = reward_fn, max_steps
+    self.codec = codec or PixelCodec()
     self.instruction: str | list[str] | None = None
     self._window = None
+
+  @classmethod
+  def from_model(cls, model: "LoadedModel", *, context: int | None = None,
+                 horizon: int | None = None, **kwargs) -> "WorldModelEnv":
+    """An environment over a loaded checkpoint (:func:`wmjax.train.checkpoint.load_model`): its
+    codec, action statistics and normalisation, and by default its rollout context / horizon."""
+    config = model.config
+    return cls(model.world_model, model.params, context=context or config.rollout.context,
+               horizon=horizon or config.rollout.horizon, action_stats=model.action_stats,
+               normalization=config.data.normalization, frame_shape=model.image_shape,
+               codec=model.codec, **kwargs)
 
   @property
   def action_dim(self) -> int:
@@ -98,7 +118,7 @@ class WorldModelEnv:
     if not bool(jnp.isfinite(frames).all()):
       raise ValueError("initial_frames contain NaN or inf values")
     b, c0 = frames.shape[:2]
-    self._window = frames
+    self._window = self.codec.encode(frames, jax.random.split(self.rng)[1])
     self._history = np.zeros((b, c0 - 1, self.action_dim), np.float32)
     self._known = np.zeros((b, c0 - 1), bool)
     if context_actions is not None:
@@ -121,19 +141,20 @@ class WorldModelEnv:
     window_mask = np.concatenate([self._known, np.ones((b, k), bool), np.zeros((b, pad), bool)], 1)
     new = sample_block(self.world_model, self.params, self._window, jnp.asarray(window_actions),
                        block_key(self.rng, self._step), jnp.asarray(window_mask))[:, :k]
+    frames = self.codec.decode(new)
     actions_so_far = np.concatenate([self._history, actions], axis=1)
     known_so_far = np.concatenate([self._known, np.ones((b, k), bool)], axis=1)
     self._window = jnp.concatenate([self._window, new], axis=1)[:, -self.context:]
     between = self._window.shape[1] - 1  # actions between the window's frames
     self._history = actions_so_far[:, actions_so_far.shape[1] - between:]
     self._known = known_so_far[:, known_so_far.shape[1] - between:]
-    self._frames.append(np.asarray(new))
+    self._frames.append(np.asarray(frames))
     self._step += 1
     total = sum(f.shape[1] for f in self._frames)
     reward = (np.zeros(b, np.float32) if self.reward_fn is None
-              else np.asarray(self.reward_fn(np.asarray(new), self.instruction), np.float32))
+              else np.asarray(self.reward_fn(np.asarray(frames), self.instruction), np.float32))
     truncated = np.full(b, self.max_steps is not None and total >= self.max_steps)
-    return new, reward, np.zeros(b, bool), truncated, {"frames": total, "step": self._step}
+    return frames, reward, np.zeros(b, bool), truncated, {"frames": total, "step": self._step}
 
   def video(self) -> np.ndarray:
     """Every frame of the current episodes, initial frames included: ``[B, T, H, W, C]``."""

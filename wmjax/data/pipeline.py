@@ -77,8 +77,12 @@ class Normalize:
 
 
 def frames_to_float(batch: dict[str, Any]) -> dict[str, Any]:
-  """uint8 frames -> float32 in [-1, 1] (done last, after workers, to move 4x fewer bytes)."""
-  return dict(batch, frames=batch["frames"].astype(np.float32) / 127.5 - 1.0)
+  """uint8 frames -> float32 in [-1, 1] (done last, after workers, to move 4x fewer bytes);
+  pre-encoded latents (float16) -> float32."""
+  frames = batch["frames"]
+  if frames.dtype == np.uint8:
+    return dict(batch, frames=frames.astype(np.float32) / 127.5 - 1.0)
+  return dict(batch, frames=frames.astype(np.float32))
 
 
 def _check_compatible(sources: Sequence[WindowSource], action_dim: int) -> None:

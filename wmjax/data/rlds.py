@@ -28,8 +28,9 @@ from wmjax.data.oxe import DatasetSpec, decode_instruction, get_path
 
 @dataclasses.dataclass
 class Episode:
-  """Steps ``first_step .. first_step+L-1`` of an episode: encoded images ``[L]``, standardised
-  actions ``[L, A]``, instruction, per-step extras ``[L, ...]``."""
+  """Steps ``first_step .. first_step+L-1`` of an episode: encoded images ``[L]`` (or
+  pre-encoded latents ``[L, h, w, c]``), standardised actions ``[L, A]``, instruction, per-step
+  extras ``[L, ...]``."""
 
   images: Sequence[bytes]
   actions: np.ndarray
@@ -86,8 +87,12 @@ def make_window(episode: Episode, start: int, frames: int, resolution: tuple[int
   if first < 0 or stop > len(episode):
     raise ValueError(f"window [{start}, {start + frames}) does not fit steps "
                      f"[{episode.first_step}, {episode.first_step + len(episode)})")
+  if isinstance(episode.images, np.ndarray):  # pre-encoded latents [L, h, w, c]
+    frames = episode.images[first:stop]
+  else:
+    frames = np.stack([decode_image(episode.images[i], resolution) for i in range(first, stop)])
   window = {
-      "frames": np.stack([decode_image(episode.images[i], resolution) for i in range(first, stop)]),
+      "frames": frames,
       "actions": episode.actions[first:stop - 1].astype(np.float32),
       "instruction": episode.instruction.encode("utf-8"),
       "episode": np.int64(episode_index),

@@ -154,9 +154,9 @@ def action_stats(builder_dir: str, split: str = "train", name: str | None = None
   return stats
 
 
-def dataset_dir(config: ml_collections.ConfigDict) -> str:
-  """The ArrayRecord builder directory of ``config.data``; the gridworld is generated if missing."""
-  data = config.data
+def dataset_dir(data: ml_collections.ConfigDict) -> str:
+  """The ArrayRecord builder directory of a data config (``config.data`` or a mixture member):
+  ``builder_dir``, or for the gridworld ``data_dir`` (generated there if missing)."""
   if data.dataset == "gridworld":
     params = gridworld.GridworldConfig(**data.get("gridworld", {}))
     return gridworld.prepare(os.path.expanduser(data.data_dir), params)

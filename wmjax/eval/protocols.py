@@ -115,11 +115,10 @@ def _as_masks(masks: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 
 def frame_metrics(pred, truth, extras: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-  """Per-frame metrics ``[E, T]`` of ``pred`` against ``truth`` (both ``[E, T, H, W, C]``, the
-  generated frames only); ``extras`` hold per-frame ``square_positions`` / ``masks`` when the
-  data has them. SSIM needs frames of at least 11 (colour) / 7 (grayscale) pixels."""
-  result = {"mse": metrics.mse(pred, truth), "psnr": metrics.psnr(pred, truth),
-            "latent_l2": metrics.latent_l2(frames_to_model(pred), frames_to_model(truth))}
+  """Per-frame pixel metrics ``[E, T]`` of ``pred`` against ``truth`` (both ``[E, T, H, W, C]``
+  RGB, the generated frames only); ``extras`` hold per-frame ``square_positions`` / ``masks``
+  when the data has them. SSIM needs frames of at least 11 (colour) / 7 (grayscale) pixels."""
+  result = {"mse": metrics.mse(pred, truth), "psnr": metrics.psnr(pred, truth)}
   h, w, c = np.shape(truth)[-3:]
   if c == 3:
     if min(h, w) >= 11:
@@ -130,7 +129,7 @@ def frame_metrics(pred, truth, extras: dict[str, np.ndarray]) -> dict[str, np.nd
       result["gray_ssim"] = metrics.ssim(gray_pred * 2 - 1, gray_truth * 2 - 1, "uniform")
   if "masks" in extras:
     result["masked_mse"] = metrics.masked_mse(pred, truth, extras["masks"])
-  if "square_positions" in extras:
+  if "square_positions" in extras and "masks" not in extras:
     centres = extras["square_positions"]
     colors = gridworld.COLORS[:centres.shape[-2]]
     error, _ = metrics.square_position_error(pred, centres, colors, missing_penalty=h / 2)
@@ -199,21 +198,29 @@ def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, 
     batch = trajectories.take(padded)
     steps = np.arange(batch.actions.shape[1])[None]
     known = steps < (batch.lengths - 1)[:, None]
-    predicted = rollout(
-        model.world_model, model.params, frames_to_model(batch.frames[:, first:start]),
-        jnp.asarray(batch.actions[:, start - 1:]), jax.random.fold_in(rng, index),
+    encode_key, rollout_key = jax.random.split(jax.random.fold_in(rng, index))
+    latents = model.codec.encode(frames_to_model(batch.frames[:, first:]), encode_key)
+    generated = rollout(
+        model.world_model, model.params, latents[:, :context],
+        jnp.asarray(batch.actions[:, start - 1:]), rollout_key,
         horizon=horizon, action_mask=jnp.asarray(known[:, start - 1:]),
         context_actions=jnp.asarray(batch.actions[:, first:start - 1]) if context > 1 else None)
-    predicted = metrics.to_uint8(predicted[:len(take), context:])
+    generated = generated[:len(take), context:]
+    truth_latents = latents[:len(take), context - 1:]  # the last context frame, then the targets
+    predicted = metrics.to_uint8(model.codec.decode(generated))
     truth = batch.frames[:len(take), start:]
     extras = {k: v[:len(take), start:] for k, v in batch.extras.items()}
     valid = (np.arange(truth.shape[1])[None] + start) < batch.lengths[:len(take), None]
     copy = np.broadcast_to(batch.frames[:len(take), start - 1:start], truth.shape)
     if frechet is not None:
       frechet.update(truth, predicted)
-    for store, pred in ((per_model, predicted), (per_copy, copy)):
-      for name, values in frame_metrics(pred, truth, extras).items():
-        store.setdefault(name, []).append(np.where(valid, values, np.nan))
+    copy_latents = jnp.broadcast_to(truth_latents[:, :1], generated.shape)
+    for store, pred, pred_latents in ((per_model, predicted, generated),
+                                      (per_copy, copy, copy_latents)):
+      values = frame_metrics(pred, truth, extras)
+      values["latent_l2"] = np.asarray(metrics.latent_l2(pred_latents, truth_latents[:, 1:]))
+      for name, value in values.items():
+        store.setdefault(name, []).append(np.where(valid, value, np.nan))
     for i in range(len(take)):
       if len(videos) < keep_videos:
         n = lengths[take[i]] - start
@@ -428,13 +435,15 @@ def evaluate_checkpoint(workdir: str, *, split: str, out: str | None = None,
   from wmjax.data.sources import dataset_dir
   from wmjax.eval import video as video_lib
   from wmjax.train.checkpoint import load_model
+  from wmjax.train.data import member_configs
 
   unknown = set(protocols) - {"short", "long", "sweep"}
   if unknown or not protocols:
     raise ValueError(f"protocols must be among short, long, sweep; got {list(protocols)}")
   model = load_model(workdir, step=step, params=params, overrides=overrides)
   config = model.config
-  episodes = ArrayRecordEpisodes(dataset_dir(config), split, config.data.dataset)
+  data = member_configs(config.data)[0]  # a mixture is evaluated on its first dataset
+  episodes = ArrayRecordEpisodes(dataset_dir(data), split, data.dataset)
   if mask_key:
     episodes.spec = dataclasses.replace(episodes.spec,
                                         extra_keys=episodes.spec.extra_keys + (mask_key,))

@@ -17,6 +17,7 @@ import jax
 import ml_collections
 import orbax.checkpoint as ocp
 
+from wmjax.codecs import Codec, make_codec
 from wmjax.config import apply_overrides
 from wmjax.data.stats import ActionStats
 from wmjax.rollout import WorldModel
@@ -76,10 +77,17 @@ class LoadedModel:
   params: Any  # EMA or raw parameters, replicated over the local devices
   action_stats: ActionStats
   step: int
+  codec: Codec  # RGB frames <-> the model's space (config.codec)
 
   @property
   def frame_shape(self) -> tuple[int, int, int]:
+    """The model's frames (latents for a VAE codec)."""
     return tuple(self.config.frame_shape)
+
+  @property
+  def image_shape(self) -> tuple[int, int, int]:
+    """The RGB frames the codec takes."""
+    return self.codec.image_shape(self.frame_shape)
 
 
 def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
@@ -122,4 +130,5 @@ def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
   finally:
     manager.close()
   return LoadedModel(config, world_model, restored.state[key],
-                     ActionStats.from_dict(meta.action_stats), int(step))
+                     ActionStats.from_dict(meta.action_stats), int(step),
+                     make_codec(config.get("codec")))

@@ -13,7 +13,6 @@ Workdir layout: ``checkpoints/``, ``tensorboard/``, ``metrics.jsonl``, ``samples
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import hashlib
 import json
@@ -28,62 +27,19 @@ import ml_collections
 import numpy as np
 
 from wmjax import parallel
-from wmjax.data import oxe
-from wmjax.data.pipeline import Normalize, WindowSource, frames_to_float, training_pipeline
-from wmjax.data.rlds import stack_steps
-from wmjax.data.sources import ArrayRecordEpisodes, action_stats, dataset_dir
-from wmjax.data.stats import ActionStats
+from wmjax.codecs import Codec, PixelCodec
+from wmjax.data.pipeline import training_pipeline
 from wmjax.diffusion import diffusion_loss
 from wmjax.eval.protocols import frame_metrics
 from wmjax.eval.video import comparison, stack_rows, write_video
 from wmjax.rollout import WorldModel, rollout
 from wmjax.train.checkpoint import Checkpointer
+from wmjax.train.data import build_data, eval_windows
 from wmjax.train.step import ShardedTrainer
 
 
 class NonFiniteLossError(RuntimeError):
   """The loss became NaN or inf; training stopped without saving the bad state."""
-
-
-# ----------------------------------------------------------------------------- data
-
-
-@dataclasses.dataclass
-class TrainData:
-  spec: oxe.DatasetSpec
-  stats: ActionStats
-  train: WindowSource
-  eval: WindowSource
-
-
-def build_data(config: ml_collections.ConfigDict) -> TrainData:
-  """Window sources and action statistics, checked against the model before anything compiles."""
-  builder_dir = dataset_dir(config)
-  train_episodes = ArrayRecordEpisodes(builder_dir, config.data.get("train_split", "train"),
-                                       config.data.dataset)
-  spec = train_episodes.spec
-  if spec.action_dim != config.model.action_dim:
-    raise ValueError(f"{spec.name} has {spec.action_dim}-dim actions but the model expects "
-                     f"model.action_dim={config.model.action_dim}")
-  resolution = tuple(config.data.get("resolution") or spec.resolution)
-  if tuple(config.frame_shape) != resolution + (3,):
-    raise ValueError(f"frame_shape {tuple(config.frame_shape)} does not match the data's frames "
-                     f"{resolution + (3,)} (a pixel-space model sees the resized RGB frames)")
-  frames = config.data.frames
-  if frames > config.model.num_frames:
-    raise ValueError(f"data.frames={frames} exceeds model.num_frames={config.model.num_frames}")
-  eval_episodes = ArrayRecordEpisodes(builder_dir, config.data.get("eval_split", "test"),
-                                      config.data.dataset)
-  return TrainData(spec, action_stats(builder_dir, train_episodes.split, config.data.dataset),
-                   WindowSource(train_episodes, frames, config.data.train_stride, resolution),
-                   WindowSource(eval_episodes, frames, config.data.eval_stride, resolution))
-
-
-def eval_windows(data: TrainData, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
-  """The fixed held-out windows evaluated during training, normalised and batched."""
-  count = min(config.train.eval_windows, len(data.eval))
-  normalize = Normalize(data.stats, config.data.normalization, config.model.action_dim, 0)
-  return frames_to_float(stack_steps([normalize(data.eval[k]) for k in range(count)]))
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -98,14 +54,22 @@ def _validation_loss(world_model: WorldModel, params: Any, frames: jax.Array, ac
 
 
 def evaluate(world_model: WorldModel, params: Any, windows: dict[str, np.ndarray],
-             config: ml_collections.ConfigDict, rng: jax.Array) -> tuple[dict, np.ndarray]:
-  """Validation loss and rollout metrics on ``windows``; returns (metrics, predicted frames)."""
-  frames, actions = jnp.asarray(windows["frames"]), jnp.asarray(windows["actions"])
+             config: ml_collections.ConfigDict, rng: jax.Array, codec: Codec,
+             latents: bool = False) -> tuple[dict, np.ndarray]:
+  """Validation loss and rollout metrics on ``windows`` (RGB frames, or pre-encoded latents if
+  ``latents``, whose pixel metrics then compare with the codec's reconstructions); returns
+  (metrics, true RGB frames, predicted RGB frames)."""
+  loss_rng, rollout_rng, encode_rng = jax.random.split(rng, 3)
+  if latents:
+    frames = jnp.asarray(windows["frames"])
+    truth = np.asarray(codec.decode(frames))
+  else:
+    frames = codec.encode(jnp.asarray(windows["frames"]), encode_rng)
+    truth = windows["frames"]  # already on the host
+  actions = jnp.asarray(windows["actions"])
   c, h = config.rollout.context, config.rollout.horizon
-  loss_rng, rollout_rng = jax.random.split(rng)
-  predicted = np.asarray(rollout(world_model, params, frames[:, :c], actions[:, c - 1:],
-                                 rollout_rng, horizon=h))
-  truth = windows["frames"]  # already on the host
+  predicted = np.asarray(codec.decode(rollout(world_model, params, frames[:, :c],
+                                              actions[:, c - 1:], rollout_rng, horizon=h)))
   val_loss = _validation_loss(world_model, params, frames, actions, loss_rng,
                               config.diffusion.regime, config.diffusion.num_context)
   extras = {k: windows[k][:, c:] for k in ("square_positions",) if k in windows}
@@ -114,7 +78,7 @@ def evaluate(world_model: WorldModel, params: Any, windows: dict[str, np.ndarray
   for prefix, candidate in (("rollout", predicted[:, c:]), ("copy_last", copy_last)):
     for name, values in frame_metrics(candidate, truth[:, c:], extras).items():
       result[f"{prefix}_{name}"] = float(np.nanmean(values))
-  return result, predicted
+  return result, truth, predicted
 
 
 def write_samples(path: str, truth: np.ndarray, predicted: np.ndarray, count: int = 4) -> str:
@@ -163,11 +127,13 @@ def train(config: ml_collections.ConfigDict, workdir: str) -> tuple[Any, dict]:
   world_model = WorldModel.from_config(config)
   trainer = ShardedTrainer(world_model, config, mesh, tuple(config.frame_shape), config.data.frames)
   iterator = iter(training_pipeline(
-      [data.train], [data.stats], batch_size=config.batch_size // jax.process_count(),
+      [m.train for m in data.members], [m.stats for m in data.members],
+      weights=[m.weight for m in data.members],
+      batch_size=config.batch_size // jax.process_count(),
       seed=config.seed, normalization=config.data.normalization,
       action_dim=config.model.action_dim, num_workers=config.data.num_workers))
   checkpoints = Checkpointer(os.path.join(workdir, "checkpoints"), config.train.max_checkpoints)
-  config_dict, stats_dict = json.loads(config.to_json()), data.stats.to_dict()
+  config_dict, stats_dict = json.loads(config.to_json()), data.stats_dict()
   if is_chief:
     with open(os.path.join(workdir, "config.json"), "w") as f:
       f.write(config.to_json(indent=2))
@@ -183,6 +149,9 @@ def train(config: ml_collections.ConfigDict, workdir: str) -> tuple[Any, dict]:
   log = open(os.path.join(workdir, "metrics.jsonl"), "a") if is_chief else None
   stop = _StopFlag()
   num_steps, train_cfg = config.train.num_steps, config.train
+  # RGB batches -> latents on the device (unless they were pre-encoded)
+  encode_frames = not data.latents and not isinstance(data.codec, PixelCodec)
+  encode_key = jax.random.key(config.seed + 1)
   last_good = start
   step = start
 
@@ -206,7 +175,10 @@ def train(config: ml_collections.ConfigDict, workdir: str) -> tuple[Any, dict]:
     while step < num_steps and not stop.requested:
       batch = next(iterator)
       global_batch = parallel.global_batch({k: batch[k] for k in ("frames", "actions")}, mesh)
-      state, step_metrics = trainer.step(state, global_batch["frames"], global_batch["actions"])
+      frames = global_batch["frames"]
+      if encode_frames:
+        frames = data.codec.encode(frames, jax.random.fold_in(encode_key, step))
+      state, step_metrics = trainer.step(state, frames, global_batch["actions"])
       step += 1
       bar.update(1)
       if step % train_cfg.log_every == 0 or step % train_cfg.checkpoint_every == 0:
@@ -225,13 +197,13 @@ def train(config: ml_collections.ConfigDict, workdir: str) -> tuple[Any, dict]:
       if step % train_cfg.checkpoint_every == 0:
         save(step)
       if step % train_cfg.eval_every == 0 and step < num_steps:
-        result, predicted = evaluate(world_model, state.ema_params, windows, config,
-                                     jax.random.key(step))
+        result, truth, predicted = evaluate(world_model, state.ema_params, windows, config,
+                                            jax.random.key(step), data.codec, data.latents)
         if is_chief:
           for key, value in result.items():
             writer.add_scalar(f"eval/{key}", value, step)
-          write_samples(os.path.join(workdir, "samples", f"step_{step:07d}.gif"),
-                        windows["frames"], predicted)
+          write_samples(os.path.join(workdir, "samples", f"step_{step:07d}.gif"), truth,
+                        predicted)
           bar.write(f"step {step}: " + ", ".join(f"{k}={v:.4g}" for k, v in result.items()))
     if stop.requested:
       if step != last_good:
@@ -244,11 +216,11 @@ def train(config: ml_collections.ConfigDict, workdir: str) -> tuple[Any, dict]:
       save(step)
     checkpoints.wait()
     bar.close()
-    result, predicted = evaluate(world_model, state.ema_params, windows, config,
-                                 jax.random.key(num_steps))
+    result, truth, predicted = evaluate(world_model, state.ema_params, windows, config,
+                                        jax.random.key(num_steps), data.codec, data.latents)
     result["step"] = step
     if is_chief:
-      write_samples(os.path.join(workdir, "rollout.gif"), windows["frames"], predicted)
+      write_samples(os.path.join(workdir, "rollout.gif"), truth, predicted)
       with open(os.path.join(workdir, "metrics.json"), "w") as f:
         json.dump(result, f, indent=2)
       for key, value in result.items():

@@ -1,0 +1,197 @@
+"""Codecs between RGB frames and the space a world model diffuses in.
+
+A world-model config names its codec in ``config.codec``:
+
+  kind='pixel'  identity: the model sees RGB in [-1, 1]
+  kind='patch'  ``patch_size`` x ``patch_size`` space-to-depth (``[H/p, W/p, 3 p^2]``), exact inverse
+  kind='vae'    a diffusers AutoencoderKL folder (``path``): latents are
+                ``(mean - shift_factor) * scaling_factor`` (or a sample instead of the mean), as
+                IRASim (SDXL VAE) and WPE (SD3 VAE) use them; ``scaling_factor`` / ``shift_factor``
+                default to the folder's config.json; ``dtype`` 'bfloat16' halves the cost.
+
+``encode`` / ``decode`` map ``[..., H, W, 3] <-> [..., h, w, c]`` over any leading axes (e.g.
+``[B, T]``), are pure JAX and can be jitted or called inside a jitted step; a VAE processes
+``chunk`` frames at a time to bound memory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any, Protocol
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+
+from wmjax.nn.vae import AutoencoderKL, load_diffusers
+
+CODECS = ("pixel", "patch", "vae")
+
+
+class Codec(Protocol):
+  def latent_shape(self, frame_shape: tuple[int, int, int]) -> tuple[int, int, int]: ...
+  def image_shape(self, latent_shape: tuple[int, int, int]) -> tuple[int, int, int]: ...
+  def encode(self, frames: jax.Array, rng: jax.Array | None = None) -> jax.Array: ...
+  def decode(self, latents: jax.Array) -> jax.Array: ...
+
+
+def _check_frames(frames, channels: int, what: str) -> None:
+  if frames.ndim < 3 or frames.shape[-1] != channels:
+    raise ValueError(f"{what} must be [..., H, W, {channels}], got shape {tuple(frames.shape)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class PixelCodec:
+  """Identity: RGB frames in [-1, 1] are the model's space."""
+
+  def latent_shape(self, frame_shape):
+    return tuple(frame_shape)
+
+  def image_shape(self, latent_shape):
+    return tuple(latent_shape)
+
+  def encode(self, frames, rng=None):
+    del rng
+    return jnp.asarray(frames, jnp.float32)
+
+  def decode(self, latents):
+    return jnp.asarray(latents, jnp.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class PatchCodec:
+  """``p x p`` space-to-depth: ``[..., H, W, 3] -> [..., H/p, W/p, 3 p^2]`` (exact inverse)."""
+
+  patch_size: int
+
+  def latent_shape(self, frame_shape):
+    h, w, c = frame_shape
+    p = self.patch_size
+    if h % p or w % p:
+      raise ValueError(f"frames {h}x{w} are not divisible by the codec's patch size {p}")
+    return (h // p, w // p, c * p * p)
+
+  def image_shape(self, latent_shape):
+    h, w, d = latent_shape
+    p = self.patch_size
+    return (h * p, w * p, d // (p * p))
+
+  def encode(self, frames, rng=None):
+    del rng
+    frames = jnp.asarray(frames, jnp.float32)
+    *lead, h, w, c = frames.shape
+    self.latent_shape((h, w, c))
+    p = self.patch_size
+    x = frames.reshape(*lead, h // p, p, w // p, p, c)
+    x = jnp.moveaxis(x, -4, -3)  # [..., h, w, p, p, c]
+    return x.reshape(*lead, h // p, w // p, p * p * c)
+
+  def decode(self, latents):
+    latents = jnp.asarray(latents, jnp.float32)
+    *lead, h, w, d = latents.shape
+    p = self.patch_size
+    x = latents.reshape(*lead, h, w, p, p, d // (p * p))
+    x = jnp.moveaxis(x, -3, -4)  # [..., h, p, w, p, c]
+    return x.reshape(*lead, h * p, w * p, d // (p * p))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class VAECodec:
+  """A diffusers AutoencoderKL (see the module doc); hashable by identity."""
+
+  module: AutoencoderKL
+  params: Any
+  scaling_factor: float
+  shift_factor: float = 0.0
+  sample: bool = False
+  chunk: int = 16
+
+  def latent_shape(self, frame_shape):
+    h, w, _ = frame_shape
+    f = self.module.config.downsample_factor
+    if h % f or w % f:
+      raise ValueError(f"frames {h}x{w} are not divisible by the VAE's downsampling factor {f}")
+    return (h // f, w // f, self.module.config.latent_channels)
+
+  def image_shape(self, latent_shape):
+    h, w, _ = latent_shape
+    f = self.module.config.downsample_factor
+    return (h * f, w * f, self.module.config.in_channels)
+
+  def encode(self, frames, rng=None):
+    frames = jnp.asarray(frames, jnp.float32)
+    _check_frames(frames, self.module.config.in_channels, "frames")
+    if self.sample and rng is None:
+      raise ValueError("this codec samples latents (sample=True): pass an rng")
+    return _vae_encode(self, self.params, frames, rng)
+
+  def decode(self, latents):
+    latents = jnp.asarray(latents, jnp.float32)
+    _check_frames(latents, self.module.config.latent_channels, "latents")
+    return _vae_decode(self, self.params, latents)
+
+
+def _over_frames(fn, x: jax.Array, chunk: int) -> jax.Array:
+  """``fn`` (one frame ``[H, W, C]`` -> ``[h, w, c]``) over ``x [..., H, W, C]``, ``chunk``
+  frames at a time."""
+  lead = x.shape[:-3]
+  flat = x.reshape((-1,) + x.shape[-3:])
+  out = jax.lax.map(fn, flat, batch_size=min(chunk, flat.shape[0]))
+  return out.reshape(lead + out.shape[1:])
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _vae_encode(codec: VAECodec, params, frames: jax.Array, rng) -> jax.Array:
+  def one(image):
+    mean, logvar = codec.module.apply(params, image[None], method="encode")
+    return jnp.concatenate([mean, logvar], -1)[0]
+
+  mean, logvar = jnp.split(_over_frames(one, frames, codec.chunk), 2, axis=-1)
+  if codec.sample:
+    mean = mean + jnp.exp(0.5 * logvar) * jax.random.normal(rng, mean.shape)
+  return (mean - codec.shift_factor) * codec.scaling_factor
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _vae_decode(codec: VAECodec, params, latents: jax.Array) -> jax.Array:
+  def one(latent):
+    return codec.module.apply(params, latent[None], method="decode")[0]
+
+  z = latents / codec.scaling_factor + codec.shift_factor
+  return jnp.clip(_over_frames(one, z, codec.chunk), -1.0, 1.0)
+
+
+def codec_config(**overrides) -> ml_collections.ConfigDict:
+  """``config.codec`` with every field: kind, path, patch_size, dtype, sample, chunk,
+  scaling_factor, shift_factor (None: from the VAE's config.json)."""
+  fields = dict(kind="pixel", path="", patch_size=1, dtype="float32", sample=False, chunk=16,
+                scaling_factor=None, shift_factor=None)
+  unknown = set(overrides) - set(fields)
+  if unknown:
+    raise ValueError(f"unknown codec fields {sorted(unknown)}; known: {sorted(fields)}")
+  fields.update(overrides)
+  return ml_collections.ConfigDict(fields, type_safe=False)
+
+
+def make_codec(config: ml_collections.ConfigDict | None) -> Codec:
+  """The codec a world-model config names (``config.codec``; none means pixels)."""
+  if config is None:
+    return PixelCodec()
+  kind = config.get("kind", "pixel")
+  if kind == "pixel":
+    return PixelCodec()
+  if kind == "patch":
+    return PatchCodec(int(config.patch_size))
+  if kind != "vae":
+    raise ValueError(f"codec.kind must be one of {CODECS}, got {kind!r}")
+  if not config.get("path"):
+    raise ValueError("codec.kind='vae' needs codec.path: a diffusers AutoencoderKL folder "
+                     "(config.json + diffusion_pytorch_model.safetensors)")
+  module, params = load_diffusers(config.path, jnp.dtype(config.get("dtype", "float32")))
+  scaling = config.get("scaling_factor")
+  shift = config.get("shift_factor")
+  return VAECodec(module, params,
+                  module.config.scaling_factor if scaling is None else float(scaling),
+                  (module.config.shift_factor or 0.0) if shift is None else float(shift),
+                  bool(config.get("sample", False)), int(config.get("chunk", 16)))

@@ -1,0 +1,136 @@
+"""The data a training run reads: one dataset or a weighted mixture (``config.data.mixture``),
+as RGB frames encoded by the codec on the device or as pre-encoded latents.
+
+``config.data`` names one dataset (``dataset``, ``builder_dir`` or the generated gridworld,
+``latents_dir``) or, with ``mixture``, several: ``mixture.<dataset> = {builder_dir, weight,
+latents_dir}`` entries that inherit the rest of ``config.data`` (frames, strides, resolution,
+normalisation). Each member is normalised with its own action statistics and its actions are
+zero-padded to ``model.action_dim``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import ml_collections
+import numpy as np
+
+from wmjax.codecs import Codec, make_codec
+from wmjax.data import oxe
+from wmjax.data.latents import LatentEpisodes, codec_description
+from wmjax.data.pipeline import Normalize, WindowSource, frames_to_float
+from wmjax.data.rlds import stack_steps
+from wmjax.data.sources import ArrayRecordEpisodes, action_stats, dataset_dir
+from wmjax.data.stats import ActionStats
+
+
+@dataclasses.dataclass
+class Member:
+  """One dataset of the run: its spec, action statistics, windows and mixture weight."""
+
+  spec: oxe.DatasetSpec
+  stats: ActionStats
+  train: WindowSource
+  eval: WindowSource
+  weight: float
+
+
+@dataclasses.dataclass
+class TrainData:
+  members: list[Member]
+  codec: Codec  # RGB frames <-> the model's space
+  latents: bool  # the windows hold pre-encoded latents (``latents_dir``), not RGB frames
+
+  def stats_dict(self) -> dict:
+    """Saved with every checkpoint: the first member's statistics (those ``wmjax rollout`` and
+    ``WorldModelEnv`` normalise with), and every member's under ``mixture``."""
+    out = self.members[0].stats.to_dict()
+    if len(self.members) > 1:
+      out["mixture"] = {m.spec.name: m.stats.to_dict() for m in self.members}
+    return out
+
+
+def member_configs(data: ml_collections.ConfigDict) -> list[ml_collections.ConfigDict]:
+  """``config.data`` itself, or one config per ``data.mixture`` entry (see the module doc)."""
+  mixture = data.get("mixture")
+  if not mixture:
+    return [data]
+  base = {k: v for k, v in data.to_dict().items() if k != "mixture"}
+  members = []
+  for name, entry in mixture.items():
+    member = ml_collections.ConfigDict(dict(base, dataset=name, builder_dir="", latents_dir="",
+                                            weight=1.0))
+    member.update(entry.to_dict())
+    members.append(member)
+  return members
+
+
+def _open_latents(data: ml_collections.ConfigDict, config: ml_collections.ConfigDict):
+  directory = os.path.expanduser(data.latents_dir)
+  train_episodes = LatentEpisodes(directory, data.get("train_split", "train"))
+  meta = train_episodes.metadata
+  if meta["codec"] != codec_description(config.get("codec")):
+    raise ValueError(f"{directory} was encoded with codec {meta['codec']}, but config.codec is "
+                     f"{codec_description(config.get('codec'))}")
+  if tuple(meta["latent_shape"]) != tuple(config.frame_shape):
+    raise ValueError(f"{directory} holds latents of shape {tuple(meta['latent_shape'])}, but "
+                     f"frame_shape is {tuple(config.frame_shape)}")
+  eval_episodes = LatentEpisodes(directory, data.get("eval_split", "test"))
+  return (train_episodes, eval_episodes, ActionStats.from_dict(meta["action_stats"]),
+          tuple(meta["resolution"]))
+
+
+def _open_frames(data: ml_collections.ConfigDict, config: ml_collections.ConfigDict,
+                 codec: Codec):
+  builder_dir = dataset_dir(data)
+  train_episodes = ArrayRecordEpisodes(builder_dir, data.get("train_split", "train"),
+                                       data.dataset)
+  eval_episodes = ArrayRecordEpisodes(builder_dir, data.get("eval_split", "test"), data.dataset)
+  stats = action_stats(builder_dir, train_episodes.split, data.dataset)
+  resolution = tuple(data.get("resolution") or train_episodes.spec.resolution)
+  if tuple(config.frame_shape) != codec.latent_shape(resolution + (3,)):
+    raise ValueError(f"frame_shape {tuple(config.frame_shape)} does not match what the codec "
+                     f"({config.get('codec', {}).get('kind', 'pixel')}) makes of "
+                     f"{data.dataset}'s {resolution + (3,)} frames: "
+                     f"{codec.latent_shape(resolution + (3,))}")
+  return train_episodes, eval_episodes, stats, resolution
+
+
+def build_data(config: ml_collections.ConfigDict) -> TrainData:
+  """Window sources and action statistics of every member, checked against the model before
+  anything compiles."""
+  codec = make_codec(config.get("codec"))
+  frames = config.data.frames
+  if frames > config.model.num_frames:
+    raise ValueError(f"data.frames={frames} exceeds model.num_frames={config.model.num_frames}")
+  members, kinds = [], set()
+  for data in member_configs(config.data):
+    latents = bool(data.get("latents_dir"))
+    kinds.add(latents)
+    train_episodes, eval_episodes, stats, resolution = (
+        _open_latents(data, config) if latents else _open_frames(data, config, codec))
+    spec = train_episodes.spec
+    if spec.action_dim > config.model.action_dim:
+      raise ValueError(f"{spec.name} has {spec.action_dim}-dim actions but the model takes "
+                       f"model.action_dim={config.model.action_dim}")
+    members.append(Member(spec, stats,
+                          WindowSource(train_episodes, frames, data.train_stride, resolution),
+                          WindowSource(eval_episodes, frames, data.eval_stride, resolution),
+                          float(data.get("weight", 1.0))))
+  if len(kinds) > 1:
+    raise ValueError("a mixture must be all pre-encoded latents or all frames")
+  return TrainData(members, codec, kinds.pop())
+
+
+def eval_windows(data: TrainData, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
+  """The fixed held-out windows evaluated during training (shared out among the members),
+  normalised and batched."""
+  total = config.train.eval_windows
+  windows = []
+  for i, member in enumerate(data.members):
+    count = min(len(member.eval), -(-total // len(data.members)))
+    normalize = Normalize(member.stats, config.data.normalization, config.model.action_dim, i,
+                          keep_extras=len(data.members) == 1)
+    windows += [normalize(member.eval[k]) for k in range(count)]
+  return frames_to_float(stack_steps(windows[:total]))
