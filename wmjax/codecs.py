@@ -133,19 +133,20 @@ class VAECodec:
 
 
 def _over_frames(fn, x: jax.Array, chunk: int) -> jax.Array:
-  """``fn`` (one frame ``[H, W, C]`` -> ``[h, w, c]``) over ``x [..., H, W, C]``, ``chunk``
-  frames at a time."""
+  """``fn`` (frames ``[B, H, W, C]`` -> ``[B, h, w, c]``) over ``x [B, ..., H, W, C]``: the
+  leading (batch, possibly sharded) axis stays inside every call, the other leading axes are
+  mapped over, about ``chunk`` frames per call."""
   lead = x.shape[:-3]
-  flat = x.reshape((-1,) + x.shape[-3:])
-  out = jax.lax.map(fn, flat, batch_size=min(chunk, flat.shape[0]))
-  return out.reshape(lead + out.shape[1:])
+  b = lead[0] if lead else 1
+  steps = jnp.moveaxis(x.reshape((b, -1) + x.shape[-3:]), 1, 0)  # [N, B, H, W, C]
+  out = jax.lax.map(fn, steps, batch_size=max(1, min(chunk // b, steps.shape[0])))
+  return jnp.moveaxis(out, 0, 1).reshape(lead + out.shape[2:])
 
 
 @functools.partial(jax.jit, static_argnums=0)
 def _vae_encode(codec: VAECodec, params, frames: jax.Array, rng) -> jax.Array:
-  def one(image):
-    mean, logvar = codec.module.apply(params, image[None], method="encode")
-    return jnp.concatenate([mean, logvar], -1)[0]
+  def one(images):
+    return jnp.concatenate(codec.module.apply(params, images, method="encode"), -1)
 
   mean, logvar = jnp.split(_over_frames(one, frames, codec.chunk), 2, axis=-1)
   if codec.sample:
@@ -155,8 +156,8 @@ def _vae_encode(codec: VAECodec, params, frames: jax.Array, rng) -> jax.Array:
 
 @functools.partial(jax.jit, static_argnums=0)
 def _vae_decode(codec: VAECodec, params, latents: jax.Array) -> jax.Array:
-  def one(latent):
-    return codec.module.apply(params, latent[None], method="decode")[0]
+  def one(latents):
+    return codec.module.apply(params, latents, method="decode")
 
   z = latents / codec.scaling_factor + codec.shift_factor
   return jnp.clip(_over_frames(one, z, codec.chunk), -1.0, 1.0)

@@ -11,8 +11,10 @@ checkpointable iterators work unchanged; set ``config.data.latents_dir`` to trai
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+import re
 import shutil
 from typing import Any, Callable, Sequence
 
@@ -26,6 +28,11 @@ from wmjax.data.rlds import Episode, make_window
 from wmjax.data.sources import ArrayRecordEpisodes
 
 METADATA = "wmjax_latents.json"
+
+
+def _split_file(split: str) -> str:
+  """``train[:95%]`` -> ``train___95__.array_record``."""
+  return re.sub(r"[^\w.-]", "_", split) + ".array_record"
 
 
 def codec_description(codec_config) -> dict:
@@ -51,8 +58,9 @@ def encode_dataset(builder_dir: str, out: str, splits: Sequence[str], dataset: s
                               "action_stats": action_stats}
   for split in splits:
     episodes = ArrayRecordEpisodes(builder_dir, split, dataset)
-    metadata.update(dataset=episodes.spec.name, builder_dir=os.fspath(builder_dir))
-    writer = ArrayRecordWriter(os.path.join(tmp, f"{split}.array_record"), "group_size:1")
+    metadata.update(dataset=episodes.spec.name, layout=episodes.spec.layout,
+                    builder_dir=os.fspath(builder_dir))
+    writer = ArrayRecordWriter(os.path.join(tmp, _split_file(split)), "group_size:1")
     lengths = []
     for index in range(len(episodes)):
       episode = episodes.episode(index)
@@ -89,10 +97,12 @@ class LatentEpisodes:
       raise ValueError(f"{latents_dir} has no split {split!r}; splits: "
                        f"{sorted(self.metadata['splits'])}")
     self.builder_dir, self.split = os.fspath(latents_dir), split
-    self.spec = oxe.SPECS[self.metadata["dataset"]]
+    layouts = {s.layout: s for s in oxe.SPECS[self.metadata["dataset"]]}
+    self.spec = dataclasses.replace(layouts[self.metadata["layout"]],
+                                    resolution=tuple(self.metadata["resolution"]))
     self._lengths = np.asarray(self.metadata["splits"][split]["lengths"], np.int64)
     self._source = grain.sources.ArrayRecordDataSource(
-        [os.path.join(latents_dir, f"{split}.array_record")])
+        [os.path.join(latents_dir, _split_file(split))])
 
   def __len__(self) -> int:
     return len(self._lengths)

@@ -80,7 +80,7 @@ class ArrayRecordEpisodes:
     if builder.info.file_format.value != "array_record":
       raise ValueError(f"{builder_dir} is stored as {builder.info.file_format.value}; random access "
                        f"needs ArrayRecord: run `wmjax data convert {builder_dir} OUT_DIR`")
-    if split not in builder.info.splits:
+    if split.split("[")[0] not in builder.info.splits:  # slices like "train[95%:]" are fine
       raise ValueError(f"{builder_dir} has no split {split!r}; splits: {list(builder.info.splits)}")
     self.builder_dir, self.split = os.fspath(builder_dir), split
     self.spec = resolve(builder, name)

@@ -253,7 +253,7 @@ def load_diffusers(path: str, dtype=jnp.float32) -> tuple[AutoencoderKL, dict]:
   (module, params). No torch needed; ``dtype`` is the compute dtype (params stay float32)."""
   import safetensors
 
-  folder = path
+  folder = os.path.expanduser(path)
   if not os.path.isfile(os.path.join(folder, "config.json")) and os.path.isdir(
       os.path.join(folder, "vae")):
     folder = os.path.join(folder, "vae")

@@ -111,8 +111,11 @@ def build_data(config: ml_collections.ConfigDict) -> TrainData:
     train_episodes, eval_episodes, stats, resolution = (
         _open_latents(data, config) if latents else _open_frames(data, config, codec))
     spec = train_episodes.spec
-    if spec.action_dim > config.model.action_dim:
-      raise ValueError(f"{spec.name} has {spec.action_dim}-dim actions but the model takes "
+    # a mixture zero-pads smaller action spaces; a single dataset must match exactly
+    mixture = bool(config.data.get("mixture"))
+    if spec.action_dim > config.model.action_dim or (
+        not mixture and spec.action_dim != config.model.action_dim):
+      raise ValueError(f"{spec.name} has {spec.action_dim}-dim actions but the model expects "
                        f"model.action_dim={config.model.action_dim}")
     members.append(Member(spec, stats,
                           WindowSource(train_episodes, frames, data.train_stride, resolution),

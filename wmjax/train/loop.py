@@ -176,8 +176,9 @@ def train(config: ml_collections.ConfigDict, workdir: str) -> tuple[Any, dict]:
       batch = next(iterator)
       global_batch = parallel.global_batch({k: batch[k] for k in ("frames", "actions")}, mesh)
       frames = global_batch["frames"]
-      if encode_frames:
-        frames = data.codec.encode(frames, jax.random.fold_in(encode_key, step))
+      if encode_frames:  # the latents keep the batch's sharding
+        frames = jax.device_put(data.codec.encode(frames, jax.random.fold_in(encode_key, step)),
+                                frames.sharding)
       state, step_metrics = trainer.step(state, frames, global_batch["actions"])
       step += 1
       bar.update(1)

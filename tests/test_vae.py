@@ -1,0 +1,113 @@
+"""The Flax AutoencoderKL against diffusers' PyTorch implementation (random weights, SD/SDXL and
+SD3 layouts), weight-file errors, and the codecs."""
+
+import json
+import shutil
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import safetensors.numpy
+
+from wmjax.codecs import PatchCodec, PixelCodec, codec_config, make_codec
+from wmjax.nn.vae import load_diffusers
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("diffusers")
+
+from vae_fixtures import LAYOUTS, save_random_vae  # noqa: E402  (needs torch and diffusers)
+
+def _relative_error(ours, theirs):
+  return float(np.linalg.norm(np.asarray(ours) - theirs) / np.linalg.norm(theirs))
+
+
+@pytest.mark.parametrize("layout", sorted(LAYOUTS))
+def test_encode_and_decode_match_diffusers(tmp_path, layout):
+  vae = save_random_vae(tmp_path / layout, layout)
+  module, params = load_diffusers(str(tmp_path / layout))
+  x = np.random.default_rng(0).uniform(-1, 1, (2, 32, 24, 3)).astype(np.float32)
+  with torch.no_grad():
+    posterior = vae.encode(torch.from_numpy(x).permute(0, 3, 1, 2)).latent_dist
+    mean = posterior.mean.permute(0, 2, 3, 1).numpy()
+    logvar = posterior.logvar.permute(0, 2, 3, 1).numpy()
+    z = np.random.default_rng(1).normal(size=mean.shape).astype(np.float32)
+    decoded = vae.decode(torch.from_numpy(z).permute(0, 3, 1, 2)).sample.permute(0, 2, 3, 1)
+  our_mean, our_logvar = module.apply(params, jnp.asarray(x), method="encode")
+  assert our_mean.shape == mean.shape == (2, 16, 12, LAYOUTS[layout]["latent_channels"])
+  assert _relative_error(our_mean, mean) < 1e-4
+  assert _relative_error(our_logvar, logvar) < 1e-4
+  assert _relative_error(module.apply(params, jnp.asarray(z), method="decode"),
+                         decoded.numpy()) < 1e-4
+
+
+def test_vae_codec_applies_scaling_and_shift_over_video_axes(tmp_path):
+  save_random_vae(tmp_path / "sd3", "sd3")
+  codec = make_codec(codec_config(kind="vae", path=str(tmp_path / "sd3"), chunk=3))
+  assert (codec.scaling_factor, codec.shift_factor) == (1.5305, 0.0609)
+  frames = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (2, 5, 32, 24, 3)), jnp.float32)
+  latents = codec.encode(frames)
+  assert latents.shape == (2, 5) + codec.latent_shape((32, 24, 3)) == (2, 5, 16, 12, 16)
+  mean, _ = codec.module.apply(codec.params, frames.reshape(-1, 32, 24, 3), method="encode")
+  np.testing.assert_allclose(latents.reshape(mean.shape), (mean - 0.0609) * 1.5305, atol=1e-4)
+  decoded = codec.decode(latents)
+  expected = codec.module.apply(codec.params, mean, method="decode")
+  np.testing.assert_allclose(decoded.reshape(expected.shape), np.clip(expected, -1, 1), atol=1e-4)
+  assert codec.image_shape((16, 12, 16)) == (32, 24, 3)
+  sampling = make_codec(codec_config(kind="vae", path=str(tmp_path / "sd3"), sample=True))
+  with pytest.raises(ValueError, match="pass an rng"):
+    sampling.encode(frames)
+  assert float(jnp.abs(sampling.encode(frames, jax.random.key(0)) - latents).max()) > 1e-3
+
+
+def _rewrite(src, dst, edit):
+  shutil.copytree(src, dst)
+  path = dst / "diffusion_pytorch_model.safetensors"
+  state = safetensors.numpy.load_file(str(path))
+  edit(state)
+  safetensors.numpy.save_file(state, str(path))
+  return str(dst)
+
+
+def test_weight_file_errors_name_the_parameter(tmp_path):
+  save_random_vae(tmp_path / "vae", "sdxl")
+  key = "decoder.up_blocks.1.resnets.0.conv1.weight"
+  missing = _rewrite(tmp_path / "vae", tmp_path / "missing", lambda s: s.pop(key))
+  with pytest.raises(ValueError, match=r"lack 1 parameter.*up_blocks\.1\.resnets\.0\.conv1"):
+    load_diffusers(missing)
+  unknown = _rewrite(tmp_path / "vae", tmp_path / "unknown",
+                     lambda s: s.update({"encoder.extra.weight": np.zeros(3, np.float32)}))
+  with pytest.raises(ValueError, match=r"no parameter for.*encoder\.extra\.weight"):
+    load_diffusers(unknown)
+  shape = _rewrite(tmp_path / "vae", tmp_path / "shape",
+                   lambda s: s.update({key: s[key][:, :-1]}))
+  with pytest.raises(ValueError, match=r"up_blocks\.1\.resnets\.0\.conv1\.weight: shape"):
+    load_diffusers(shape)
+  legacy = _rewrite(tmp_path / "vae", tmp_path / "legacy", lambda s: s.update(
+      {k.replace("to_q", "query"): s.pop(k) for k in list(s) if ".to_q." in k}))
+  module, params = load_diffusers(legacy)  # old attention names are mapped
+  assert module.config.latent_channels == 4
+  config = json.loads((tmp_path / "vae" / "config.json").read_text())
+  config["act_fn"] = "gelu"
+  (tmp_path / "legacy" / "config.json").write_text(json.dumps(config))
+  with pytest.raises(ValueError, match="unsupported act_fn 'gelu'"):
+    load_diffusers(legacy)
+  (tmp_path / "empty").mkdir()
+  with pytest.raises(FileNotFoundError, match="no config.json"):
+    load_diffusers(str(tmp_path / "empty"))
+
+
+def test_pixel_and_patch_codecs():
+  frames = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (2, 3, 8, 12, 3)), jnp.float32)
+  patch = PatchCodec(4)
+  latents = patch.encode(frames)
+  assert latents.shape == (2, 3, 2, 3, 48) and patch.image_shape((2, 3, 48)) == (8, 12, 3)
+  np.testing.assert_array_equal(latents[0, 0, 1, 2, :3], frames[0, 0, 4, 8])  # pixel (4, 8)
+  np.testing.assert_array_equal(patch.decode(latents), frames)
+  np.testing.assert_array_equal(PixelCodec().encode(frames), frames)
+  with pytest.raises(ValueError, match="not divisible by the codec's patch size 5"):
+    PatchCodec(5).latent_shape((8, 12, 3))
+  with pytest.raises(ValueError, match="codec.kind must be one of"):
+    make_codec(codec_config(kind="jpeg"))
+  with pytest.raises(ValueError, match="needs codec.path"):
+    make_codec(codec_config(kind="vae"))
