@@ -1,10 +1,12 @@
-"""Shared command-line pieces of the model benchmarks: config arguments and the JSON result."""
+"""Shared pieces of the model benchmarks: config arguments, timing and the JSON result."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import statistics
+import time
 
 import jax
 
@@ -28,3 +30,17 @@ def write_result(kind: str, result: dict, args: argparse.Namespace) -> str:
     json.dump(result, f, indent=2)
   print(f"wrote {out}")
   return out
+
+
+def median_seconds(fn, repeats: int) -> tuple[float, float]:
+  """(median seconds of ``repeats`` calls of ``fn`` after a first, compiling call; that call's
+  seconds)."""
+  start = time.perf_counter()
+  jax.block_until_ready(fn())
+  compile_s = time.perf_counter() - start
+  times = []
+  for _ in range(repeats):
+    start = time.perf_counter()
+    jax.block_until_ready(fn())
+    times.append(time.perf_counter() - start)
+  return statistics.median(times), compile_s

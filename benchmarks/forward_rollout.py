@@ -13,28 +13,14 @@ from __future__ import annotations
 
 import argparse
 import platform
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
 
-from common import add_config_arguments, write_result
+from common import add_config_arguments, median_seconds, write_result
 from wmjax.config import load_config
 from wmjax.nn import forward_flops
 from wmjax.rollout import WorldModel, rollout
-
-
-def _median_seconds(fn, repeats: int) -> tuple[float, float]:
-  start = time.perf_counter()
-  jax.block_until_ready(fn())
-  compile_s = time.perf_counter() - start
-  times = []
-  for _ in range(repeats):
-    start = time.perf_counter()
-    jax.block_until_ready(fn())
-    times.append(time.perf_counter() - start)
-  return statistics.median(times), compile_s
 
 
 def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,
@@ -50,13 +36,13 @@ def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,
   t = jnp.full((batch, n), 500.0)
   actions = jnp.zeros((batch, n - 1, net.action_dim))
   forward = jax.jit(net.apply)
-  forward_s, forward_compile_s = _median_seconds(lambda: forward(params, x, t, actions), repeats)
+  forward_s, forward_compile_s = median_seconds(lambda: forward(params, x, t, actions), repeats)
   flops = forward_flops(net, batch, n, shape[0], shape[1])
 
   context = jax.random.normal(jax.random.key(2), (batch, c) + shape)
   rollout_actions = jnp.zeros((batch, frames, net.action_dim))
   run = lambda: rollout(wm, params, context, rollout_actions, jax.random.key(3), horizon=h)
-  rollout_s, rollout_compile_s = _median_seconds(run, repeats)
+  rollout_s, rollout_compile_s = median_seconds(run, repeats)
   calls = wm.sampler.model_calls(h) * (2 if wm.sampler.guidance_scale != 1.0 else 1)
   blocks = -(-frames // h)
   return {

@@ -192,16 +192,26 @@ def cmd_data_encode(args, extra) -> int:
   from wmjax.data.latents import codec_description, encode_dataset
   from wmjax.data.sources import ArrayRecordEpisodes, action_stats, dataset_dir
   from wmjax.env import frames_to_model
+  from wmjax.train.data import member_configs
 
   config = _config_from_args(args, extra)
+  members = {m.dataset: m for m in member_configs(config.data)}
+  if args.dataset is None and len(members) > 1:
+    raise SystemExit(f"wmjax data encode: the config mixes {sorted(members)}; pick one with "
+                     f"--dataset")
+  if args.dataset is not None and args.dataset not in members:
+    raise SystemExit(f"wmjax data encode: --dataset {args.dataset!r} is not in the config's data "
+                     f"({sorted(members)})")
+  data = members[args.dataset] if args.dataset else next(iter(members.values()))
   codec = make_codec(config.get("codec"))
-  builder_dir = dataset_dir(config.data)
-  splits = args.splits.split(",")
-  spec = ArrayRecordEpisodes(builder_dir, splits[0], config.data.dataset).spec
-  resolution = tuple(config.data.get("resolution") or spec.resolution)
-  stats = action_stats(builder_dir, config.data.get("train_split", "train"), config.data.dataset)
+  builder_dir = dataset_dir(data)
+  splits = args.splits.split(",") if args.splits else [data.get("train_split", "train"),
+                                                       data.get("eval_split", "test")]
+  spec = ArrayRecordEpisodes(builder_dir, splits[0], data.dataset).spec
+  resolution = tuple(data.get("resolution") or spec.resolution)
+  stats = action_stats(builder_dir, data.get("train_split", "train"), data.dataset)
   keys = (jax.random.fold_in(jax.random.key(args.seed), i) for i in itertools.count())
-  out = encode_dataset(builder_dir, args.out, splits, config.data.dataset, resolution,
+  out = encode_dataset(builder_dir, args.out, splits, data.dataset, resolution,
                        lambda frames: np.asarray(codec.encode(frames_to_model(frames), next(keys))),
                        codec_description(config.get("codec")), stats.to_dict())
   print(out)
@@ -232,7 +242,9 @@ def _add_data_commands(sub) -> None:
                                description=cmd_data_encode.__doc__)
   encode.add_argument("--config", required=True, help="config file, optionally file.py:arg")
   encode.add_argument("--out", required=True, help="output directory (must not exist)")
-  encode.add_argument("--splits", default="train,test", help="comma-separated splits")
+  encode.add_argument("--splits", default=None,
+                      help="comma-separated splits (default: the config's train and eval splits)")
+  encode.add_argument("--dataset", default=None, help="the mixture member to encode")
   encode.add_argument("--seed", type=int, default=0, help="for codecs that sample latents")
   encode.set_defaults(func=cmd_data_encode)
 

@@ -40,7 +40,10 @@ def codec_description(codec_config) -> dict:
   if codec_config is None:
     return {"kind": "pixel"}
   keys = ("kind", "path", "patch_size", "sample", "scaling_factor", "shift_factor")
-  return {k: codec_config.get(k) for k in keys if codec_config.get(k) is not None}
+  out = {k: codec_config.get(k) for k in keys if codec_config.get(k) is not None}
+  if out.get("path"):
+    out["path"] = os.path.abspath(os.path.expanduser(out["path"]))
+  return out
 
 
 def encode_dataset(builder_dir: str, out: str, splits: Sequence[str], dataset: str | None,
