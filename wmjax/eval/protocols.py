@@ -20,6 +20,9 @@ index over the trajectories that reach it.
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import json
+import os
 from typing import Any, Callable, Sequence
 
 import jax
@@ -29,11 +32,13 @@ import numpy as np
 from wmjax.data import gridworld
 from wmjax.data.pipeline import WindowSource
 from wmjax.data.rlds import make_window
-from wmjax.data.sources import ArrayRecordEpisodes
+from wmjax.data.sources import ArrayRecordEpisodes, dataset_dir
 from wmjax.env import frames_to_model
 from wmjax.eval import metrics
+from wmjax.eval import video as video_lib
 from wmjax.rollout import rollout
-from wmjax.train.checkpoint import LoadedModel
+from wmjax.train.checkpoint import LoadedModel, load_model
+from wmjax.train.data import member_configs
 
 # name -> whether lower is better (for the report)
 METRICS = {"mse": True, "psnr": False, "ssim": False, "gray_psnr": False, "gray_ssim": False,
@@ -374,11 +379,12 @@ def markdown_report(results: dict, header: str) -> str:
         lines.append(f"| {metric}{' ↓' if lower else ' ↑'} | {_cell(m)} | {_cell(b)} | {better} |")
     key = "square_error_px" if "square_error_px" in r["model"] else "mse"
     curve, base = r["model"][key]["per_frame"], r["copy_last"][key]["per_frame"]
+    shown = np.unique(np.linspace(0, len(curve) - 1, min(len(curve), 16)).round().astype(int))
     lines += ["", f"{key} per generated frame (model / copy-last):", "",
-              "| frame | " + " | ".join(str(i + 1) for i in range(len(curve))) + " |",
-              "|---" * (len(curve) + 1) + "|",
-              "| model | " + " | ".join(f"{v:.3g}" for v in curve) + " |",
-              "| copy last | " + " | ".join(f"{v:.3g}" for v in base) + " |", ""]
+              "| frame | " + " | ".join(str(i + 1) for i in shown) + " |",
+              "|---" * (len(shown) + 1) + "|",
+              "| model | " + " | ".join(f"{curve[i]:.3g}" for i in shown) + " |",
+              "| copy last | " + " | ".join(f"{base[i]:.3g}" for i in shown) + " |", ""]
   if "sweep" in results:
     rows = results["sweep"]["rows"]
     names = [m for m in METRICS if m in rows[0]]
@@ -411,7 +417,6 @@ def import_function(path: str | None) -> Callable | None:
   """``package.module:function`` -> the function (``None`` stays ``None``)."""
   if not path:
     return None
-  import importlib
   module, sep, name = path.partition(":")
   if not sep:
     raise ValueError(f"expected package.module:function, got {path!r}")
@@ -429,14 +434,6 @@ def evaluate_checkpoint(workdir: str, *, split: str, out: str | None = None,
   """``wmjax evaluate``: the protocols on ``split`` of the checkpoint's dataset; writes
   ``metrics.json``, ``report.md`` and ``videos/`` (ground truth | prediction | difference as mp4,
   and a PNG frame grid) to ``out`` (default ``WORKDIR/eval/SPLIT-stepN``). Returns (out, results)."""
-  import json
-  import os
-
-  from wmjax.data.sources import dataset_dir
-  from wmjax.eval import video as video_lib
-  from wmjax.train.checkpoint import load_model
-  from wmjax.train.data import member_configs
-
   unknown = set(protocols) - {"short", "long", "sweep"}
   if unknown or not protocols:
     raise ValueError(f"protocols must be among short, long, sweep; got {list(protocols)}")
@@ -447,7 +444,7 @@ def evaluate_checkpoint(workdir: str, *, split: str, out: str | None = None,
   if mask_key:
     episodes.spec = dataclasses.replace(episodes.spec,
                                         extra_keys=episodes.spec.extra_keys + (mask_key,))
-  resolution = tuple(config.data.get("resolution") or episodes.spec.resolution)
+  resolution = tuple(data.get("resolution") or episodes.spec.resolution)
   normalization = config.data.normalization
 
   def normalize(actions):
@@ -465,7 +462,7 @@ def evaluate_checkpoint(workdir: str, *, split: str, out: str | None = None,
   out = out or os.path.join(workdir, "eval", f"{split}-step{model.step}")
   os.makedirs(out, exist_ok=True)
   header = (f"# wmjax evaluate: {config.get('name', '')} step {model.step} ({params} parameters), "
-            f"split {split!r}, {config.data.dataset}")
+            f"split {split!r}, {data.dataset}")
   results = dict(results, workdir=os.path.abspath(workdir), step=model.step, split=split,
                  params=params, sampler=config.sampling.to_dict())
   with open(os.path.join(out, "metrics.json"), "w") as f:
