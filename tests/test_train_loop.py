@@ -3,7 +3,6 @@
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -16,6 +15,7 @@ import pytest
 
 from conftest import ROOT, tiny_config
 from wmjax.data import gridworld
+from wmjax.launch import launch_local
 from wmjax.train.loop import NonFiniteLossError, train
 from wmjax.train.step import ShardedTrainer
 
@@ -100,26 +100,30 @@ def _flatten(tree):
           for path, leaf in jax.tree_util.tree_leaves_with_path(tree)}
 
 
-def _free_port():
-  with socket.socket() as s:
-    s.bind(("127.0.0.1", 0))
-    return s.getsockname()[1]
-
-
-def test_two_processes_train_and_agree(data_dir, tmp_path):
-  port = _free_port()
+def test_local_launcher_runs_two_cooperating_processes(data_dir, tmp_path, capfd, monkeypatch):
+  """`wmjax.launch` starts a 2-process CPU training job (one device each): both finish, hold the
+  same parameters, and the checkpoint is written."""
   overrides = _overrides(data_dir, **{"train.num_steps": 3, "train.checkpoint_every": 3})
-  workers = [subprocess.Popen(
-      [sys.executable, str(ROOT / "tests" / "distributed_worker.py"), str(port), str(i),
-       str(tmp_path / "run")] + overrides, cwd=ROOT, env=_env(devices=1), stdout=subprocess.PIPE,
-      stderr=subprocess.STDOUT, text=True) for i in range(2)]
-  outputs = [w.communicate(timeout=600)[0] for w in workers]
-  assert all(w.returncode == 0 for w in workers), outputs[0][-3000:] + outputs[1][-3000:]
-  digests = [line.split() for out in outputs for line in out.splitlines()
-             if line.startswith("DIGEST")]
-  assert sorted(d[1] for d in digests) == ["0", "1"] and all(d[2] == "2" for d in digests)
-  assert digests[0][3] == digests[1][3]
+  monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+  monkeypatch.chdir(ROOT)
+  code = launch_local([sys.executable, str(ROOT / "tests" / "distributed_worker.py"),
+                       str(tmp_path / "run")] + overrides, 2, timeout=600)
+  output = capfd.readouterr().out
+  assert code == 0, output[-6000:]
+  digests = [line.split() for line in output.splitlines() if "DIGEST" in line]
+  assert sorted(d[0] for d in digests) == ["[0]", "[1]"] and all(d[3] == "2" for d in digests)
+  assert digests[0][4] == digests[1][4]
   assert (tmp_path / "run" / "checkpoints" / "3").is_dir()
+
+
+def test_launcher_stops_every_process_when_one_fails(tmp_path):
+  script = tmp_path / "fail.py"
+  script.write_text("import sys, time\n"
+                    "index = int(sys.argv[sys.argv.index('--process_id') + 1])\n"
+                    "sys.exit(3) if index == 1 else time.sleep(120)\n")
+  start = time.time()
+  assert launch_local([sys.executable, str(script)], 2, timeout=100) == 3
+  assert time.time() - start < 60
 
 
 def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(data_dir, tmp_path, monkeypatch):

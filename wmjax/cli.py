@@ -3,6 +3,7 @@
   wmjax train --config configs/gridworld.py --workdir DIR [--config.key=value ...]
   wmjax evaluate --workdir DIR [--split test] [--protocols short,long,sweep] [--config.key=value]
   wmjax rollout --workdir DIR --frames FILE [FILE ...] --actions FILE --out DIR
+  wmjax launch --num_processes 2 -- train --config configs/gridworld.py --workdir DIR
   wmjax info --config configs/irasim.py:XL [--config.key=value ...]
   wmjax data prepare gridworld --data_dir DIR [--num_squares N ...]
   wmjax data convert SRC_BUILDER_DIR DST_DIR
@@ -126,6 +127,20 @@ def cmd_rollout(args, extra) -> int:
   print(f"{out.shape[0]} rollout(s) of {c} context + {out.shape[1] - c} frames (horizon "
         f"{horizon}, checkpoint step {model.step}) -> {args.out}")
   return 0
+
+
+def cmd_launch(args, extra) -> int:
+  """Run a wmjax command (e.g. train) as several processes on this machine, joined by
+  jax.distributed: CPU processes with simulated devices, or one slice of the GPUs each."""
+  from wmjax.launch import launch_local
+  command = list(args.command) + list(extra)
+  if command[:1] == ["--"]:
+    command = command[1:]
+  if not command:
+    raise SystemExit("wmjax launch: give the command after --, e.g. -- train --config F --workdir D")
+  return launch_local([sys.executable, "-m", "wmjax.cli"] + command, args.num_processes,
+                      platform=args.platform, devices_per_process=args.devices_per_process,
+                      port=args.port)
 
 
 def cmd_info(args, extra) -> int:
@@ -313,6 +328,17 @@ def main(argv: list[str] | None = None) -> int:
   roll.add_argument("--normalized", action="store_true",
                     help="the actions are already normalised (skip the checkpoint statistics)")
   roll.set_defaults(func=cmd_rollout)
+
+  launch = sub.add_parser("launch", help="run a command as N local processes (jax.distributed)",
+                          description=cmd_launch.__doc__)
+  launch.add_argument("--num_processes", type=int, required=True)
+  launch.add_argument("--platform", choices=["cpu", "gpu"], default="cpu")
+  launch.add_argument("--devices_per_process", type=int, default=1,
+                      help="simulated CPU devices, or GPUs, per process")
+  launch.add_argument("--port", type=int, default=None, help="coordinator port (default: free)")
+  launch.add_argument("command", nargs=argparse.REMAINDER,
+                      help="-- followed by the wmjax command, e.g. -- train --config F ...")
+  launch.set_defaults(func=cmd_launch)
 
   info = sub.add_parser("info", help="parameter count and FLOPs of a config (no allocation)",
                         description=cmd_info.__doc__)
