@@ -1,7 +1,7 @@
 """Train-step time, samples/s and model FLOP utilisation (MFU) of any config; writes JSON.
 
   python benchmarks/train_step.py --config configs/irasim.py:XL --batch 8 \
-      --set model.dtype="'bfloat16'" [--set model.remat=True] [--peak_tflops 989]
+      --set model.dtype="'bfloat16'" [--set model.remat="'dots'"] [--peak_tflops 989]
 
 MFU = analytic model FLOPs of a train step (3 x forward: forward + backward, remat recomputation
 not counted) / step time / peak FLOP/s. The peak defaults to the dense bf16 figure of known

@@ -120,9 +120,10 @@ def test_scanned_and_unrolled_layers_agree():
                              model.apply(params, x, t, a), rtol=1e-5, atol=1e-5)
 
 
-def test_remat_changes_nothing_but_memory():
+@pytest.mark.parametrize("policy", ["full", "dots", "dots_all"])
+def test_remat_policies_change_nothing_but_memory(policy):
   model, params, (x, t, a) = _model("frame")
-  rematted = model.clone(remat=True)
+  rematted = model.clone(remat=policy)
   loss = lambda m: (lambda p: jnp.mean(m.apply(p, x, t, a) ** 2))
   np.testing.assert_allclose(rematted.apply(params, x, t, a), model.apply(params, x, t, a),
                              rtol=1e-6, atol=1e-6)
@@ -130,6 +131,8 @@ def test_remat_changes_nothing_but_memory():
   g_plain = jax.grad(loss(model))(params)
   for u, v in zip(jax.tree.leaves(g_remat), jax.tree.leaves(g_plain)):
     np.testing.assert_allclose(u, v, rtol=1e-5, atol=1e-6)
+  with pytest.raises(ValueError, match="remat must be one of"):
+    model.clone(remat="some").apply(params, x, t, a)
 
 
 def test_bf16_compute_keeps_float32_params():

@@ -6,6 +6,7 @@ import json
 import os
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from PIL import Image
@@ -180,6 +181,12 @@ def test_load_model_reads_ema_or_raw_parameters(workdir):
   assert ema.step == 4 and raw.step == 2 and raw.config.sampling.num_steps == 3
   difference = jax.tree.map(lambda a, b: float(np.abs(a - b).max()), ema.params, raw.params)
   assert max(jax.tree.leaves(difference)) > 0
+  half = load_model(workdir, param_dtype="bfloat16")
+  assert {leaf.dtype for leaf in jax.tree.leaves(half.params)} == {jnp.dtype("bfloat16")}
+  frames = half.codec.encode(jnp.zeros((1, 1, 16, 16, 3)))
+  assert np.isfinite(np.asarray(rollout(half.world_model, half.params, frames,
+                                        jnp.zeros((1, 2, 4)), jax.random.key(0),
+                                        horizon=2))).all()
   with pytest.raises(ValueError, match=r"no checkpoint for step 3"):
     load_model(workdir, step=3)
   with pytest.raises(FileNotFoundError, match="holds no checkpoints"):

@@ -26,7 +26,7 @@ from vae_fixtures import save_random_vae  # noqa: E402
 
 RESOLUTION = (32, 48)  # frames are resized to this; the tiny VAE halves it
 TINY = {"model.depth": 2, "model.hidden_size": 32, "model.num_heads": 2, "model.num_frames": 4,
-        "model.remat": False, "data.frames": 4, "data.num_workers": 0,
+        "model.remat": "none", "data.frames": 4, "data.num_workers": 0,
         "data.resolution": RESOLUTION, "rollout.context": 1, "rollout.horizon": 3,
         "batch_size": 8, "train.num_steps": 1, "train.log_every": 1, "train.checkpoint_every": 1,
         "train.eval_every": 1000, "train.eval_windows": 2, "sampling.num_steps": 2,

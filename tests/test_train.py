@@ -57,3 +57,22 @@ def test_bad_batches_fail_before_compilation():
     trainer.step(state, frames[:6], actions[:6])
   with pytest.raises(ValueError, match="mesh \\(3, 1, 1\\) needs 3 devices, 8 are available"):
     make_mesh((3, 1, 1))
+
+
+def test_memory_estimate_moves_with_remat_dtype_batch_and_sharding():
+  from wmjax.train.memory import estimate
+
+  def report(*overrides, devices=8):
+    return estimate(tiny_config("irasim.py:S", "batch_size=16", "model.depth=16", *overrides),
+                    devices)
+
+  plain = report()
+  assert plain["parameters"] > 0 and plain["mesh"] == [8, 1, 1] and plain["local_batch"] == 2
+  activations = [report(f"model.remat='{p}'")["activations_gib"]
+                 for p in ("none", "dots_all", "dots", "full")]
+  assert activations == sorted(activations, reverse=True) and activations[-1] < activations[0] / 4
+  assert report("model.dtype='bfloat16'")["activations_gib"] < plain["activations_gib"]
+  assert report("batch_size=32")["activations_gib"] > 1.9 * plain["activations_gib"]
+  fsdp = report("mesh=(2, 4, 1)")
+  assert abs(fsdp["state_gib"] * 4 - plain["state_gib"]) < 1e-9
+  assert abs(plain["state_gib"] - 16 * plain["parameters"] / 1024 ** 3) < 1e-9

@@ -77,7 +77,7 @@ def cmd_evaluate(args, extra) -> int:
       max_trajectories=args.max_trajectories, videos=args.videos, num_sets=args.sets,
       sweep_frames=args.sweep_frames, seed=args.seed, mask_key=args.mask_key,
       frame_features=args.frame_features, clip_features=args.clip_features,
-      overrides=_overrides(extra))
+      overrides=_overrides(extra), param_dtype=args.param_dtype)
   with open(f"{out}/report.md") as f:
     print(f.read())
   print(f"wrote {out}/metrics.json, report.md and videos/")
@@ -98,7 +98,7 @@ def cmd_rollout(args, extra) -> int:
   from wmjax.train.checkpoint import load_model
 
   model = load_model(args.workdir, step=args.step, params=args.params,
-                     overrides=_overrides(extra))
+                     overrides=_overrides(extra), param_dtype=args.param_dtype)
   config = model.config
   frames = inputs.read_frames(args.frames, model.image_shape, resize=args.resize)
   actions = inputs.read_actions(args.actions, model.action_stats.action_dim)
@@ -144,7 +144,8 @@ def cmd_launch(args, extra) -> int:
 
 
 def cmd_info(args, extra) -> int:
-  """Parameter count, forward FLOPs and sampling cost of a config, without allocating the model."""
+  """Parameter count, forward FLOPs, sampling cost and a per-device training-memory estimate of a
+  config, without allocating the model."""
   from wmjax.nn import forward_flops
   from wmjax.rollout import WorldModel
 
@@ -168,6 +169,9 @@ def cmd_info(args, extra) -> int:
       "model_calls_per_block": calls * guidance,
       "gflop_per_generated_frame": flops * calls * guidance / config.rollout.horizon / 1e9,
   }
+  if "batch_size" in config and "mesh" in config:
+    from wmjax.train import memory
+    info["train_memory_per_device"] = memory.estimate(config, args.devices)
   print(json.dumps(info, indent=2))
   return 0
 
@@ -295,6 +299,8 @@ def main(argv: list[str] | None = None) -> int:
   evaluate.add_argument("--out", default=None, help="default WORKDIR/eval/SPLIT-stepN")
   evaluate.add_argument("--step", type=int, default=None, help="checkpoint (default: latest)")
   evaluate.add_argument("--params", choices=["ema", "raw"], default="ema")
+  evaluate.add_argument("--param_dtype", choices=["float32", "bfloat16"], default="float32",
+                        help="parameters' dtype for inference (compute: --config.model.dtype)")
   evaluate.add_argument("--batch_size", type=int, default=16, help="rollouts at once")
   evaluate.add_argument("--max_trajectories", type=int, default=None,
                         help="cap per protocol (default: all)")
@@ -320,6 +326,8 @@ def main(argv: list[str] | None = None) -> int:
   roll.add_argument("--out", required=True, help="output directory")
   roll.add_argument("--step", type=int, default=None, help="checkpoint (default: latest)")
   roll.add_argument("--params", choices=["ema", "raw"], default="ema")
+  roll.add_argument("--param_dtype", choices=["float32", "bfloat16"], default="float32",
+                    help="parameters' dtype for inference (compute: --config.model.dtype)")
   roll.add_argument("--horizon", type=int, default=None,
                     help="frames per block (default: the config's, fitted to the window)")
   roll.add_argument("--seed", type=int, default=0)
@@ -343,6 +351,8 @@ def main(argv: list[str] | None = None) -> int:
   info = sub.add_parser("info", help="parameter count and FLOPs of a config (no allocation)",
                         description=cmd_info.__doc__)
   info.add_argument("--config", required=True, help="config file, optionally file.py:arg")
+  info.add_argument("--devices", type=int, default=None,
+                    help="devices to estimate training memory for (default: this machine's)")
   info.set_defaults(func=cmd_info)
   _add_data_commands(sub)
   args, extra = parser.parse_known_args(argv)

@@ -89,3 +89,22 @@ def logical_shardings(boxed_tree: Any, mesh: Mesh, rules=LOGICAL_RULES) -> Any:
   the result has the tree's unboxed structure, unnamed leaves replicated."""
   specs = nn.get_partition_spec(boxed_tree)
   return nn.logical_to_mesh_sharding(specs, mesh, rules)
+
+
+def local_data_mesh() -> jax.sharding.Mesh:
+  """A 1-D ``('data',)`` mesh over this process's devices, for inference: parameters replicated
+  on it, batches of independent rollouts split over it."""
+  devices = jax.local_devices()
+  return jax.make_mesh((len(devices),), ("data",), axis_types=(AxisType.Auto,), devices=devices)
+
+
+def shard_rollout_batch(*arrays):
+  """Put arrays with a leading batch axis on :func:`local_data_mesh`, split over the devices when
+  the batch divides evenly (otherwise replicated)."""
+  mesh = local_data_mesh()
+  out = []
+  for x in arrays:
+    spec = PartitionSpec("data") if x.shape[0] % mesh.size == 0 else PartitionSpec()
+    out.append(jax.device_put(x, NamedSharding(mesh, spec)))
+  return out
+

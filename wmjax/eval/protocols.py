@@ -34,6 +34,7 @@ from wmjax.data.pipeline import WindowSource
 from wmjax.data.rlds import make_window
 from wmjax.data.sources import ArrayRecordEpisodes, dataset_dir
 from wmjax.env import frames_to_model
+from wmjax.parallel import shard_rollout_batch
 from wmjax.eval import metrics
 from wmjax.eval import video as video_lib
 from wmjax.rollout import rollout
@@ -204,12 +205,13 @@ def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, 
     steps = np.arange(batch.actions.shape[1])[None]
     known = steps < (batch.lengths - 1)[:, None]
     encode_key, rollout_key = jax.random.split(jax.random.fold_in(rng, index))
-    latents = model.codec.encode(frames_to_model(batch.frames[:, first:]), encode_key)
+    frames, actions, mask = shard_rollout_batch(  # the batch is split over the local devices
+        frames_to_model(batch.frames[:, first:]), batch.actions, known)
+    latents = model.codec.encode(frames, encode_key)
     generated = rollout(
-        model.world_model, model.params, latents[:, :context],
-        jnp.asarray(batch.actions[:, start - 1:]), rollout_key,
-        horizon=horizon, action_mask=jnp.asarray(known[:, start - 1:]),
-        context_actions=jnp.asarray(batch.actions[:, first:start - 1]) if context > 1 else None)
+        model.world_model, model.params, latents[:, :context], actions[:, start - 1:],
+        rollout_key, horizon=horizon, action_mask=mask[:, start - 1:],
+        context_actions=actions[:, first:start - 1] if context > 1 else None)
     generated = generated[:len(take), context:]
     truth_latents = latents[:len(take), context - 1:]  # the last context frame, then the targets
     predicted = metrics.to_uint8(model.codec.decode(generated))
@@ -429,15 +431,16 @@ def evaluate_checkpoint(workdir: str, *, split: str, out: str | None = None,
                         max_trajectories: int | None = None, videos: int = 4, num_sets: int = 4,
                         sweep_frames: int | None = None, seed: int = 0,
                         mask_key: str | None = None, frame_features: str | None = None,
-                        clip_features: str | None = None, overrides: Sequence[str] = ()
-                        ) -> tuple[str, dict]:
+                        clip_features: str | None = None, overrides: Sequence[str] = (),
+                        param_dtype: str = "float32") -> tuple[str, dict]:
   """``wmjax evaluate``: the protocols on ``split`` of the checkpoint's dataset; writes
   ``metrics.json``, ``report.md`` and ``videos/`` (ground truth | prediction | difference as mp4,
   and a PNG frame grid) to ``out`` (default ``WORKDIR/eval/SPLIT-stepN``). Returns (out, results)."""
   unknown = set(protocols) - {"short", "long", "sweep"}
   if unknown or not protocols:
     raise ValueError(f"protocols must be among short, long, sweep; got {list(protocols)}")
-  model = load_model(workdir, step=step, params=params, overrides=overrides)
+  model = load_model(workdir, step=step, params=params, overrides=overrides,
+                     param_dtype=param_dtype)
   config = model.config
   data = member_configs(config.data)[0]  # a mixture is evaluated on its first dataset
   episodes = ArrayRecordEpisodes(dataset_dir(data), split, data.dataset)

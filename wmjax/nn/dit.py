@@ -31,6 +31,13 @@ from wmjax.nn import layers
 from wmjax.nn.layers import logical
 
 COND_MODES = ("frame", "video", "per_frame")
+# What a rematerialised layer keeps from its forward pass for the backward pass.
+REMAT_POLICIES = {
+    "none": None,  # no remat: keep every activation (fastest, most memory)
+    "full": jax.checkpoint_policies.nothing_saveable,  # recompute the whole layer
+    "dots": jax.checkpoint_policies.dots_with_no_batch_dims_saveable,  # keep weight matmuls
+    "dots_all": jax.checkpoint_policies.dots_saveable,  # keep every matmul, attention's too
+}
 TEMPORAL_POSITIONS = ("sincos", "rope")
 
 
@@ -45,13 +52,14 @@ class LayerStack(nn.Module):
   attention_impl: str | None
   dtype: jnp.dtype
   scan: bool
-  remat: bool
+  remat: str
 
   @nn.compact
   def __call__(self, x, spatial_cond, temporal_cond):
     layer_cls = layers.STLayer
-    if self.remat:
-      layer_cls = nn.remat(layer_cls, prevent_cse=not self.scan)
+    if self.remat != "none":
+      layer_cls = nn.remat(layer_cls, prevent_cse=not self.scan,
+                           policy=REMAT_POLICIES[self.remat])
     kwargs = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio, causal=self.causal,
                   rope=self.rope, attention_impl=self.attention_impl, dtype=self.dtype)
     if self.scan:
@@ -85,13 +93,15 @@ class STDiT(nn.Module):
   attention_impl: str | None = None
   dtype: str = "float32"  # compute dtype; parameters are always float32
   scan_layers: bool = True
-  remat: bool = False
+  remat: str = "none"  # a key of REMAT_POLICIES
 
   def setup(self):
     if self.cond not in COND_MODES:
       raise ValueError(f"cond must be one of {COND_MODES}, got {self.cond!r}")
     if self.temporal_pos not in TEMPORAL_POSITIONS:
       raise ValueError(f"temporal_pos must be one of {TEMPORAL_POSITIONS}, got {self.temporal_pos!r}")
+    if self.remat not in REMAT_POLICIES:
+      raise ValueError(f"remat must be one of {sorted(REMAT_POLICIES)}, got {self.remat!r}")
     if self.depth % 2:
       raise ValueError(f"depth counts spatial + temporal blocks and must be even, got {self.depth}")
     if self.hidden_size % self.num_heads:

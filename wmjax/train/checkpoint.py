@@ -19,6 +19,7 @@ import orbax.checkpoint as ocp
 
 from wmjax.codecs import Codec, make_codec
 from wmjax.config import apply_overrides
+from wmjax.parallel import local_data_mesh
 from wmjax.data.stats import ActionStats
 from wmjax.rollout import WorldModel
 
@@ -91,10 +92,11 @@ class LoadedModel:
 
 
 def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
-               overrides: Sequence[str] = ()) -> LoadedModel:
+               overrides: Sequence[str] = (), param_dtype: str = "float32") -> LoadedModel:
   """The parameters (``params='ema'`` or ``'raw'``), config and action statistics of a training
   checkpoint in ``workdir`` (the latest, or ``step``); nothing else of the train state is read.
-  ``overrides`` (``dotted.key=value``) change inference settings such as ``sampling.num_steps``."""
+  ``overrides`` (``dotted.key=value``) change inference settings such as ``sampling.num_steps``
+  or ``model.dtype``; ``param_dtype='bfloat16'`` halves the parameters' memory for inference."""
   if params not in ("ema", "raw"):
     raise ValueError(f"params must be 'ema' or 'raw', got {params!r}")
   directory = os.path.join(os.path.abspath(os.path.expanduser(workdir)), "checkpoints")
@@ -117,10 +119,7 @@ def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
     frame_shape = tuple(config.frame_shape)
     abstract = nn.unbox(jax.eval_shape(
         lambda: world_model.init(jax.random.key(0), frame_shape, config.data.frames)))
-    replicated = jax.sharding.NamedSharding(
-        jax.make_mesh((jax.local_device_count(),), ("replica",),
-                      axis_types=(jax.sharding.AxisType.Auto,), devices=jax.local_devices()),
-        jax.sharding.PartitionSpec())
+    replicated = jax.sharding.NamedSharding(local_data_mesh(), jax.sharding.PartitionSpec())
     key = "ema_params" if params == "ema" else "params"
     target = {key: abstract_with_shardings(abstract, jax.tree.map(lambda _: replicated, abstract))}
     restored = manager.restore(step, args=ocp.args.Composite(
@@ -129,6 +128,7 @@ def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
                                          target))))
   finally:
     manager.close()
-  return LoadedModel(config, world_model, restored.state[key],
+  weights = jax.tree.map(lambda p: p.astype(param_dtype), restored.state[key])
+  return LoadedModel(config, world_model, weights,
                      ActionStats.from_dict(meta.action_stats), int(step),
                      make_codec(config.get("codec")))

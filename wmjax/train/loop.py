@@ -34,6 +34,7 @@ from wmjax.eval.protocols import frame_metrics
 from wmjax.eval.video import comparison, stack_rows, write_video
 from wmjax.rollout import WorldModel, rollout
 from wmjax.train.checkpoint import Checkpointer
+from wmjax.train import memory
 from wmjax.train.data import build_data, eval_windows
 from wmjax.train.step import ShardedTrainer
 
@@ -124,6 +125,8 @@ def train(config: ml_collections.ConfigDict, workdir: str) -> tuple[Any, dict]:
   if config.batch_size % shards or config.batch_size % jax.process_count():
     raise ValueError(f"global batch_size {config.batch_size} is not divisible by the data-parallel "
                      f"size {shards} and the {jax.process_count()} processes")
+  if is_chief:
+    print(memory.describe(memory.estimate(config, jax.device_count())), flush=True)
   world_model = WorldModel.from_config(config)
   trainer = ShardedTrainer(world_model, config, mesh, tuple(config.frame_shape), config.data.frames)
   iterator = iter(training_pipeline(
