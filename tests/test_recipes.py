@@ -17,6 +17,7 @@ from wmjax.data.latents import LatentEpisodes
 from wmjax.data.rlds import make_window
 from wmjax.data.sources import ArrayRecordEpisodes
 from wmjax.env import WorldModelEnv, frames_to_model
+from wmjax.eval.protocols import evaluate_checkpoint
 from wmjax.train.checkpoint import load_model
 from wmjax.train.loop import train
 
@@ -74,6 +75,15 @@ def test_recipe_trains_one_step_and_rolls_out(recipe, assets, tmp_path):
   if recipe == "wpe.py":  # every member's statistics travel with the checkpoint
     stats = json.loads((tmp_path / "checkpoints" / "1" / "action_stats" / "metadata").read_text())
     assert sorted(stats["mixture"]) == ["bridge", "fractal20220817_data", "language_table"]
+  if recipe == "bridge.py":  # the evaluation protocols through the VAE (latent L2 on latents)
+    _, results = evaluate_checkpoint(str(tmp_path), split="train", protocols=("short", "long"),
+                                     batch_size=2, videos=1)
+    # fixture episodes of 5, 3 and 7 steps: 2 windows of 4 frames, 3 whole episodes
+    assert (results["short"]["trajectories"], results["long"]["trajectories"]) == (2, 3)
+    for protocol in ("short", "long"):
+      for name in ("mse", "psnr", "ssim", "latent_l2"):
+        assert np.isfinite(results[protocol]["model"][name]["mean"]), (protocol, name)
+    assert (tmp_path / "eval" / "train-step1" / "videos" / "long_000.mp4").exists()
   env = WorldModelEnv.from_model(model)
   frames = np.random.default_rng(0).integers(0, 256, (2, 1) + RESOLUTION + (3,), np.uint8)
   env.reset(frames)
