@@ -105,10 +105,9 @@ def cmd_rollout(args, extra) -> int:
   if len(frames) != len(actions):
     raise SystemExit(f"wmjax rollout: {len(frames)} start-frame sets but {len(actions)} action "
                      f"sequences")
-  if not args.normalized:
-    actions = model.action_stats.normalize(actions, config.data.normalization)
-  pad = config.model.action_dim - actions.shape[-1]
-  actions = np.pad(actions, ((0, 0), (0, 0), (0, pad)))
+  actions = model.action_stats.normalize(
+      actions, "none" if args.normalized else config.data.normalization,
+      pad_to=config.model.action_dim)
   c = frames.shape[1]
   horizon = args.horizon or min(config.rollout.horizon, config.model.num_frames - c)
   if horizon < 1:

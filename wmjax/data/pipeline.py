@@ -68,10 +68,8 @@ class Normalize:
     self.keep_extras = keep_extras
 
   def __call__(self, window: dict[str, Any]) -> dict[str, Any]:
-    actions = self.stats.normalize(window["actions"], self.mode)
-    pad = self.action_dim - actions.shape[-1]
     out = dict(window) if self.keep_extras else {k: window[k] for k in STANDARD_KEYS}
-    out["actions"] = np.pad(actions, ((0, 0), (0, pad))) if pad else actions
+    out["actions"] = self.stats.normalize(window["actions"], self.mode, pad_to=self.action_dim)
     out["source"] = np.int64(self.source_id)
     return out
 

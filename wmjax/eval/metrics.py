@@ -140,15 +140,20 @@ def ssim(pred, target, window: str = "gaussian") -> jax.Array:
 # ----------------------------------------------------------------------------- gridworld
 
 
+def color_masks(frames, colors: np.ndarray, tolerance: float = 60.0) -> np.ndarray:
+  """Pixels within ``tolerance`` (per channel, 0-255) of each colour: ``frames [..., H, W, 3]``,
+  ``colors [n, 3]`` -> ``[..., H, W, n]`` bool."""
+  pixels = to_uint8(frames).astype(np.float64)
+  return np.abs(pixels[..., None, :] - np.asarray(colors, np.float64)).max(-1) < tolerance
+
+
 def color_centroids(frames, colors: np.ndarray, tolerance: float = 60.0
                     ) -> tuple[np.ndarray, np.ndarray]:
   """Centroid (y, x) of the pixels of each colour: ``frames [..., H, W, 3]``, ``colors [n, 3]``
   -> centroids ``[..., n, 2]`` and found ``[..., n]`` (False where no pixel is that colour)."""
-  pixels = to_uint8(frames).astype(np.float64)
-  h, w = pixels.shape[-3:-1]
+  mask = color_masks(frames, colors, tolerance)  # [..., H, W, n]
+  h, w = mask.shape[-3:-1]
   ys, xs = np.mgrid[0:h, 0:w]
-  distance = np.abs(pixels[..., None, :] - np.asarray(colors, np.float64)).max(-1)  # [..., H, W, n]
-  mask = distance < tolerance
   count = mask.sum((-3, -2))
   with np.errstate(invalid="ignore", divide="ignore"):
     cy = (mask * ys[..., None]).sum((-3, -2)) / count

@@ -20,6 +20,7 @@ index over the trajectories that reach it.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib
 import json
 import os
@@ -140,25 +141,17 @@ def frame_metrics(pred, truth, extras: dict[str, np.ndarray]) -> dict[str, np.nd
     colors = gridworld.COLORS[:centres.shape[-2]]
     error, _ = metrics.square_position_error(pred, centres, colors, missing_penalty=h / 2)
     result["square_error_px"] = error.mean(-1)
-    masks = gridworld_object_masks(truth, colors) | gridworld_object_masks(pred, colors)
+    # object masks: the squares' pixels in the truth or the prediction
+    masks = (metrics.color_masks(truth, colors) | metrics.color_masks(pred, colors)).any(-1)
     result["masked_mse"] = metrics.masked_mse(pred, truth, masks)
   return {k: np.asarray(v, np.float64) for k, v in result.items()}
-
-
-def gridworld_object_masks(frames, colors: np.ndarray, tolerance: float = 60.0) -> np.ndarray:
-  """Pixels of any square ``[..., H, W]``: the gridworld's object masks for WPE's masked MSE."""
-  pixels = metrics.to_uint8(frames).astype(np.int16)
-  distance = np.abs(pixels[..., None, :] - colors.astype(np.int16)).max(-1)
-  return (distance < tolerance).any(-1)
 
 
 def _summarize(per_frame: dict[str, np.ndarray]) -> dict[str, dict]:
   """``[E, T]`` with NaN for missing frames -> mean / stderr over trajectories + curve."""
   out = {}
   for name, values in per_frame.items():
-    with np.errstate(invalid="ignore"):
-      per_trajectory = np.array([np.nanmean(v) if np.isfinite(v).any() else np.nan
-                                 for v in values])
+    per_trajectory, _ = metrics.mean_stderr(values, axis=1)  # NaN for a trajectory without frames
     mean, stderr = metrics.mean_stderr(per_trajectory)
     curve_mean, curve_stderr = metrics.mean_stderr(values, axis=0)
     out[name] = {"mean": float(mean), "stderr": float(stderr),
@@ -186,10 +179,11 @@ class Outcome:
 
 def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, context: int,
                  horizon: int, rng: jax.Array, batch_size: int, keep_videos: int = 0,
-                 frechet: "FrechetDistances | None" = None) -> Outcome:
+                 frechet: "FrechetDistances | None" = None, baseline: bool = True) -> Outcome:
   """Roll out every trajectory from its frames ``[first, first + context)`` under its actions
   (batches of ``batch_size``, padded so that one compilation serves all) and score the frames
-  from ``first + context`` on against the truth (and feed ``frechet``, if given)."""
+  from ``first + context`` on against the truth (and feed ``frechet``, if given); the
+  copy-last-frame baseline is scored too unless ``baseline`` is False."""
   start = first + context
   lengths = trajectories.lengths
   if (lengths <= start).any():
@@ -222,8 +216,10 @@ def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, 
     if frechet is not None:
       frechet.update(truth, predicted)
     copy_latents = jnp.broadcast_to(truth_latents[:, :1], generated.shape)
-    for store, pred, pred_latents in ((per_model, predicted, generated),
-                                      (per_copy, copy, copy_latents)):
+    candidates = [(per_model, predicted, generated)]
+    if baseline:
+      candidates.append((per_copy, copy, copy_latents))
+    for store, pred, pred_latents in candidates:
       values = frame_metrics(pred, truth, extras)
       values["latent_l2"] = np.asarray(metrics.latent_l2(pred_latents, truth_latents[:, 1:]))
       for name, value in values.items():
@@ -283,15 +279,17 @@ def sweep_settings(num_frames: int, context: int, horizon: int,
 def wpe_sweep(model: LoadedModel, trajectories: Trajectories, settings: Sequence[tuple[int, int]],
               *, num_sets: int, rng: jax.Array, batch_size: int) -> list[dict]:
   """Every (c, h) setting on the same target frames (after the longest context), ``num_sets``
-  generations each; metrics are mean and standard error over the sets."""
+  generations each; metrics are mean and standard error over the sets. The copy-last baseline
+  (the frame before the targets) is the same for every setting and is scored once."""
   longest = max(c for c, _ in settings)
   rows = []
+  copy = None
   for c, h in settings:
     set_means: dict[str, list] = {}
-    copy = None
     for s in range(num_sets):
       outcome = run_rollouts(model, trajectories, first=longest - c, context=c, horizon=h,
-                             rng=jax.random.fold_in(rng, s), batch_size=batch_size)
+                             rng=jax.random.fold_in(rng, s), batch_size=batch_size,
+                             baseline=copy is None)
       for name, values in outcome.model.items():
         set_means.setdefault(name, []).append(float(np.nanmean(values)))
       copy = copy or {name: float(np.nanmean(v)) for name, v in outcome.copy_last.items()}
@@ -448,11 +446,8 @@ def evaluate_checkpoint(workdir: str, *, split: str, out: str | None = None,
     episodes.spec = dataclasses.replace(episodes.spec,
                                         extra_keys=episodes.spec.extra_keys + (mask_key,))
   resolution = tuple(data.get("resolution") or episodes.spec.resolution)
-  normalization = config.data.normalization
-
-  def normalize(actions):
-    out = model.action_stats.normalize(actions, normalization)
-    return np.pad(out, ((0, 0), (0, config.model.action_dim - out.shape[-1])))
+  normalize = functools.partial(model.action_stats.normalize, mode=config.data.normalization,
+                                pad_to=config.model.action_dim)
 
   frechet = None
   if frame_features or clip_features:

@@ -56,7 +56,7 @@ def _validation_loss(world_model: WorldModel, params: Any, frames: jax.Array, ac
 
 def evaluate(world_model: WorldModel, params: Any, windows: dict[str, np.ndarray],
              config: ml_collections.ConfigDict, rng: jax.Array, codec: Codec,
-             latents: bool = False) -> tuple[dict, np.ndarray]:
+             latents: bool = False) -> tuple[dict, np.ndarray, np.ndarray]:
   """Validation loss and rollout metrics on ``windows`` (RGB frames, or pre-encoded latents if
   ``latents``, whose pixel metrics then compare with the codec's reconstructions); returns
   (metrics, true RGB frames, predicted RGB frames)."""
