@@ -5,7 +5,7 @@
   wmjax rollout --workdir DIR --frames FILE [FILE ...] --actions FILE --out DIR
   wmjax launch --num_processes 2 -- train --config configs/gridworld.py --workdir DIR
   wmjax info --config configs/irasim.py:XL [--config.key=value ...]
-  wmjax data prepare gridworld --data_dir DIR [--num_squares N ...]
+  wmjax data prepare gridworld|pusht --data_dir DIR [--num_squares N ...]
   wmjax data convert SRC_BUILDER_DIR DST_DIR
   wmjax data encode --config FILE --out DIR [--splits train,test]
   wmjax data stats BUILDER_DIR [--split train] [--recompute]
@@ -176,11 +176,13 @@ def cmd_info(args, extra) -> int:
 
 
 def cmd_data_prepare(args, extra) -> int:
-  """Write a synthetic dataset as an RLDS TFDS dataset in ArrayRecord (once)."""
+  """Generate a dataset (gridworld, or Push-T from the gym-pusht simulator) as an RLDS TFDS
+  dataset in ArrayRecord, once per parameter set; prints the builder directory."""
   del extra
-  from wmjax.data import gridworld
-  fields = {f.name: getattr(args, f.name) for f in dataclasses.fields(gridworld.GridworldConfig)}
-  print(gridworld.prepare(args.data_dir, gridworld.GridworldConfig(**fields)))
+  from wmjax.data.sources import GENERATED
+  params_class, prepare = GENERATED[args.dataset]
+  fields = {f.name: getattr(args, f.name) for f in dataclasses.fields(params_class)}
+  print(prepare(args.data_dir, params_class(**fields)))
   return 0
 
 
@@ -236,19 +238,28 @@ def cmd_data_encode(args, extra) -> int:
   return 0
 
 
+def _float_tuple(text: str) -> tuple[float, ...]:
+  return tuple(float(part) for part in text.split(",") if part.strip())
+
+
 def _add_data_commands(sub) -> None:
-  from wmjax.data.gridworld import GridworldConfig
+  from wmjax.data.sources import GENERATED
   data = sub.add_parser("data", help="prepare, convert and summarise datasets")
   data_sub = data.add_subparsers(dest="data_command", required=True)
 
-  prepare = data_sub.add_parser("prepare", help="write a synthetic dataset (RLDS, ArrayRecord)",
+  prepare = data_sub.add_parser("prepare", help="generate a dataset (RLDS, ArrayRecord)",
                                 description=cmd_data_prepare.__doc__)
-  prepare.add_argument("dataset", choices=["gridworld"])
-  prepare.add_argument("--data_dir", required=True, help="TFDS data directory to write into")
-  for field in dataclasses.fields(GridworldConfig):
-    prepare.add_argument(f"--{field.name}", type=type(field.default), default=field.default,
-                         help=f"gridworld {field.name} (default {field.default})")
-  prepare.set_defaults(func=cmd_data_prepare)
+  prepare_sub = prepare.add_subparsers(dest="dataset", required=True)
+  for name, (params_class, _) in GENERATED.items():
+    dataset = prepare_sub.add_parser(name, help=f"generate the {name} dataset",
+                                     description=cmd_data_prepare.__doc__)
+    dataset.add_argument("--data_dir", required=True, help="TFDS data directory to write into")
+    for field in dataclasses.fields(params_class):
+      parse = _float_tuple if isinstance(field.default, tuple) else type(field.default)
+      shown = ",".join(map(str, field.default)) if isinstance(field.default, tuple) else field.default
+      dataset.add_argument(f"--{field.name}", type=parse, default=field.default,
+                           help=f"{name} {field.name} (default {shown})")
+    dataset.set_defaults(func=cmd_data_prepare)
 
   convert = data_sub.add_parser("convert", help="TFRecord RLDS -> ArrayRecord (no beam)",
                                 description=cmd_data_convert.__doc__)

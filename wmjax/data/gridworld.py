@@ -12,14 +12,11 @@ exactly. Step ``t``'s action moves frame ``t`` to ``t+1``; the last step's actio
 from __future__ import annotations
 
 import dataclasses
-import io
-import os
 
 import numpy as np
 import tensorflow_datasets as tfds
-from PIL import Image
 
-from wmjax.data import oxe
+from wmjax.data import oxe, synthetic
 
 # Fixed colour per action slot (RGB); more squares than colours is an error.
 COLORS = np.array([(255, 64, 64), (64, 255, 64), (64, 128, 255), (255, 255, 64), (255, 64, 255),
@@ -81,66 +78,36 @@ def render(centres: np.ndarray, config: GridworldConfig) -> np.ndarray:
   return frame
 
 
-def _png(frame: np.ndarray) -> bytes:
-  buffer = io.BytesIO()
-  Image.fromarray(frame).save(buffer, format="PNG")
-  return buffer.getvalue()
-
-
-class Gridworld(tfds.core.GeneratorBasedBuilder):
-  """TFDS builder of the gridworld; one builder config per :class:`GridworldConfig`."""
+class Gridworld(synthetic.SyntheticBuilder):
+  """The WPE gridworld (appendix C.1) with true square positions; one config per
+  :class:`GridworldConfig`."""
 
   VERSION = tfds.core.Version("1.0.0")
   RELEASE_NOTES = {"1.0.0": "WPE appendix C.1 gridworld with true square positions."}
 
-  def __init__(self, *, gridworld: GridworldConfig, **kwargs):
-    self.gridworld = gridworld
-    super().__init__(config=tfds.core.BuilderConfig(name=gridworld.name), **kwargs)
+  def image_size(self) -> int:
+    return self.params.image_size
 
-  def _info(self) -> tfds.core.DatasetInfo:
-    g = self.gridworld
-    step = {
-        "observation": {
-            "image": tfds.features.Image(shape=(g.image_size, g.image_size, 3),
-                                         encoding_format="png"),
-            "square_positions": tfds.features.Tensor(shape=(g.num_squares, 2), dtype=np.float32),
-        },
-        "action": tfds.features.Tensor(shape=(2 * g.num_squares,), dtype=np.float32),
-        "language_instruction": tfds.features.Text(),
-        "reward": tfds.features.Scalar(dtype=np.float32),
-        "discount": tfds.features.Scalar(dtype=np.float32),
-        "is_first": np.bool_, "is_last": np.bool_, "is_terminal": np.bool_,
-    }
-    return tfds.core.DatasetInfo(
-        builder=self, description=__doc__,
-        features=tfds.features.FeaturesDict({
-            "steps": tfds.features.Dataset(step),
-            "episode_metadata": {"episode_id": np.int64},
-        }),
-        metadata=tfds.core.MetadataDict(dataclasses.asdict(g)))
+  def action_dim(self) -> int:
+    return 2 * self.params.num_squares
 
-  def _split_generators(self, dl_manager):
-    g = self.gridworld
-    return {"train": self._generate_examples(g.train_episodes, g.seed),
-            "test": self._generate_examples(g.test_episodes, g.seed + 1_000_003)}
+  def observation_features(self):
+    return {"square_positions": tfds.features.Tensor(shape=(self.params.num_squares, 2),
+                                                     dtype=np.float32)}
 
-  def _generate_examples(self, num_episodes: int, seed: int):
-    g = self.gridworld
-    rng = np.random.default_rng(seed)
-    for episode in range(num_episodes):
+  def num_episodes(self, split: str) -> int:
+    return self.params.train_episodes if split == "train" else self.params.test_episodes
+
+  def episodes(self, split, rng):
+    g = self.params
+    for _ in range(self.num_episodes(split)):
       centres, actions = simulate(g, rng)
-      last = g.episode_length - 1
-      steps = [{
-          "observation": {"image": _png(render(centres[t], g)), "square_positions": centres[t]},
-          "action": actions[t], "language_instruction": "move the squares",
-          "reward": 0.0, "discount": 1.0,
-          "is_first": t == 0, "is_last": t == last, "is_terminal": False,
-      } for t in range(g.episode_length)]
-      yield episode, {"steps": steps, "episode_metadata": {"episode_id": episode}}
+      yield synthetic.GeneratedEpisode(
+          images=np.stack([render(c, g) for c in centres]), actions=actions,
+          instruction="move the squares", rewards=np.zeros(g.episode_length, np.float32),
+          observations={"square_positions": centres})
 
 
 def prepare(data_dir: str, config: GridworldConfig = GridworldConfig()) -> str:
   """Write the dataset as ArrayRecord under ``data_dir`` (once); returns the builder directory."""
-  builder = Gridworld(gridworld=config, data_dir=os.fspath(data_dir), file_format="array_record")
-  builder.download_and_prepare()
-  return os.fspath(builder.data_dir)
+  return synthetic.prepare(Gridworld, data_dir, config)

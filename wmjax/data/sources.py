@@ -21,7 +21,7 @@ import ml_collections
 import numpy as np
 import tensorflow_datasets as tfds
 
-from wmjax.data import gridworld, oxe
+from wmjax.data import gridworld, oxe, pusht
 from wmjax.data.rlds import Episode, skip_image_decoding, stack_steps
 from wmjax.data.stats import STATS_FILE, ActionStats
 
@@ -154,12 +154,19 @@ def action_stats(builder_dir: str, split: str = "train", name: str | None = None
   return stats
 
 
+# Datasets wmjax generates itself: name -> (parameter dataclass, prepare(data_dir, params)).
+GENERATED = {"gridworld": (gridworld.GridworldConfig, gridworld.prepare),
+             "pusht": (pusht.PushTConfig, pusht.prepare)}
+
+
 def dataset_dir(data: ml_collections.ConfigDict) -> str:
   """The ArrayRecord builder directory of a data config (``config.data`` or a mixture member):
-  ``builder_dir``, or for the gridworld ``data_dir`` (generated there if missing)."""
-  if data.dataset == "gridworld":
-    params = gridworld.GridworldConfig(**data.get("gridworld", {}))
-    return gridworld.prepare(os.path.expanduser(data.data_dir), params)
+  ``builder_dir``, or for a generated dataset (gridworld, Push-T) ``data_dir``, where it is
+  generated if missing with the parameters in ``config.data.<dataset>``."""
+  if data.dataset in GENERATED:
+    params_class, prepare = GENERATED[data.dataset]
+    params = params_class(**data.get(data.dataset, {}))
+    return prepare(os.path.expanduser(data.data_dir), params)
   if data.dataset not in oxe.SPECS:
     raise ValueError(f"unknown dataset {data.dataset!r}; known: {sorted(oxe.SPECS)}")
   if not data.get("builder_dir"):

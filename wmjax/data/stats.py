@@ -43,13 +43,13 @@ class ActionStats:
   def action_dim(self) -> int:
     return len(self.mean)
 
-  def normalize(self, actions: np.ndarray, mode: str = "mean_std",
-                pad_to: int | None = None) -> np.ndarray:
+  def normalize(self, actions, mode: str = "mean_std", pad_to: int | None = None, xp=np):
     """Normalised ``actions [..., A]`` (float32); the gripper dimension is passed through.
-    ``pad_to``: zero-pad the last axis to a model's (larger) action dimension."""
+    ``pad_to``: zero-pad the last axis to a model's (larger) action dimension. ``xp``: the array
+    module (``numpy``, or ``jax.numpy`` inside jitted code)."""
     if mode not in NORMALIZATIONS:
       raise ValueError(f"normalization must be one of {NORMALIZATIONS}, got {mode!r}")
-    actions = np.asarray(actions, np.float32)
+    actions = xp.asarray(actions, xp.float32)
     if actions.shape[-1] != self.action_dim:
       raise ValueError(f"actions have dimension {actions.shape[-1]}, the statistics of "
                        f"{self.dataset} {self.action_dim}")
@@ -59,12 +59,12 @@ class ActionStats:
       out = (actions - self.mean) / np.maximum(self.std, 1e-6)
     else:
       span = np.maximum(self.p99 - self.p01, 1e-6)
-      out = np.clip(2.0 * (actions - self.p01) / span - 1.0, -1.0, 1.0)
+      out = xp.clip(2.0 * (actions - self.p01) / span - 1.0, -1.0, 1.0)
     if self.gripper_dim is not None and mode != "none":
-      out[..., self.gripper_dim] = actions[..., self.gripper_dim]
-    out = out.astype(np.float32)
+      out = xp.where(np.arange(self.action_dim) == self.gripper_dim, actions, out)
+    out = out.astype(xp.float32)
     if pad_to is not None and pad_to > out.shape[-1]:
-      out = np.pad(out, [(0, 0)] * (out.ndim - 1) + [(0, pad_to - out.shape[-1])])
+      out = xp.pad(out, [(0, 0)] * (out.ndim - 1) + [(0, pad_to - out.shape[-1])])
     return out
 
   def to_dict(self) -> dict:

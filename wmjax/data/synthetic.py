@@ -1,0 +1,110 @@
+"""A TFDS RLDS builder for datasets wmjax generates itself (gridworld, Push-T), in ArrayRecord.
+
+A subclass names its parameters (a frozen dataclass with a ``name`` property and ``seed``), the
+per-step observation extras and the episode generator; this class writes the standard RLDS layout
+(``steps/observation/image`` as PNG, ``steps/action``, ``language_instruction``, ``reward``,
+``discount``, ``is_first`` / ``is_last`` / ``is_terminal``) with one builder config per parameter
+set, so every variant lives in its own directory and is written once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import os
+from typing import Any, Iterator
+
+import numpy as np
+import tensorflow_datasets as tfds
+from PIL import Image
+
+
+@dataclasses.dataclass
+class GeneratedEpisode:
+  """``images [L, H, W, 3]`` uint8, ``actions [L, A]`` (step ``t``'s action leads to frame
+  ``t + 1``; the last one is never used), ``rewards [L]``, per-step ``observations`` extras."""
+
+  images: np.ndarray
+  actions: np.ndarray
+  instruction: str
+  rewards: np.ndarray
+  observations: dict[str, np.ndarray]
+
+
+def png(frame: np.ndarray) -> bytes:
+  buffer = io.BytesIO()
+  Image.fromarray(frame).save(buffer, format="PNG")
+  return buffer.getvalue()
+
+
+class SyntheticBuilder(tfds.core.GeneratorBasedBuilder):
+  """Base builder; subclasses set ``VERSION`` / ``RELEASE_NOTES`` and implement the hooks."""
+
+  SPLIT_SEED_OFFSETS = {"train": 0, "test": 1_000_003}
+
+  def __init__(self, *, params, **kwargs):
+    self.params = params
+    super().__init__(config=tfds.core.BuilderConfig(name=params.name), **kwargs)
+
+  # ---------------------------------------------------------------- subclass hooks
+  def image_size(self) -> int:
+    raise NotImplementedError
+
+  def action_dim(self) -> int:
+    raise NotImplementedError
+
+  def observation_features(self) -> dict[str, Any]:
+    """Per-step ``observation/<name>`` features besides the image."""
+    raise NotImplementedError
+
+  def num_episodes(self, split: str) -> int:
+    raise NotImplementedError
+
+  def episodes(self, split: str, rng: np.random.Generator) -> Iterator[GeneratedEpisode]:
+    raise NotImplementedError
+
+  # ---------------------------------------------------------------- TFDS
+  def _info(self) -> tfds.core.DatasetInfo:
+    size = self.image_size()
+    step = {
+        "observation": {
+            "image": tfds.features.Image(shape=(size, size, 3), encoding_format="png"),
+            **self.observation_features(),
+        },
+        "action": tfds.features.Tensor(shape=(self.action_dim(),), dtype=np.float32),
+        "language_instruction": tfds.features.Text(),
+        "reward": tfds.features.Scalar(dtype=np.float32),
+        "discount": tfds.features.Scalar(dtype=np.float32),
+        "is_first": np.bool_, "is_last": np.bool_, "is_terminal": np.bool_,
+    }
+    return tfds.core.DatasetInfo(
+        builder=self, description=type(self).__doc__,
+        features=tfds.features.FeaturesDict({
+            "steps": tfds.features.Dataset(step),
+            "episode_metadata": {"episode_id": np.int64},
+        }),
+        metadata=tfds.core.MetadataDict(dataclasses.asdict(self.params)))
+
+  def _split_generators(self, dl_manager):
+    return {split: self._generate_examples(split) for split in self.SPLIT_SEED_OFFSETS}
+
+  def _generate_examples(self, split: str):
+    rng = np.random.default_rng(self.params.seed + self.SPLIT_SEED_OFFSETS[split])
+    for index, episode in enumerate(self.episodes(split, rng)):
+      last = len(episode.images) - 1
+      steps = [{
+          "observation": {"image": png(episode.images[t]),
+                          **{k: v[t] for k, v in episode.observations.items()}},
+          "action": episode.actions[t], "language_instruction": episode.instruction,
+          "reward": episode.rewards[t], "discount": 1.0,
+          "is_first": t == 0, "is_last": t == last, "is_terminal": False,
+      } for t in range(len(episode.images))]
+      yield index, {"steps": steps, "episode_metadata": {"episode_id": index}}
+
+
+def prepare(builder_class: type[SyntheticBuilder], data_dir: str, params) -> str:
+  """Write the dataset as ArrayRecord under ``data_dir`` (once); returns the builder directory."""
+  builder = builder_class(params=params, data_dir=os.fspath(data_dir),
+                          file_format="array_record")
+  builder.download_and_prepare()
+  return os.fspath(builder.data_dir)
