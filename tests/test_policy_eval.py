@@ -99,6 +99,8 @@ def test_agreement_scores():
   assert swapped["mmrv"] == pytest.approx((0.3 + 0.3) / 4)  # policies 1 and 2 inverted, gap 0.3
   np.testing.assert_allclose(swapped["pearson"], np.corrcoef([0.9, 0.5, 0.2, 0.1],
                                                              [0.7, 0.2, 0.3, 0.05])[0, 1])
+  tied = policy_eval.agreement([0.5, 0.5, 0.5], [0.1, 0.2, 0.3])
+  assert np.isnan(tied["pearson"]) and np.isnan(tied["ranking_preserved"])
   with pytest.raises(ValueError, match="P >= 3"):
     policy_eval.agreement([1.0, 0.0], [1.0, 0.0])
   with pytest.raises(ValueError, match="no finite return"):

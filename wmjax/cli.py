@@ -3,6 +3,8 @@
   wmjax train --config configs/gridworld.py --workdir DIR [--config.key=value ...]
   wmjax evaluate --workdir DIR [--split test] [--protocols short,long,sweep] [--config.key=value]
   wmjax rollout --workdir DIR --frames FILE [FILE ...] --actions FILE --out DIR
+  wmjax eval-policy --workdir DIR [--policy push:0.1 ...] [--reward coverage|vlm|...]
+  wmjax plan --workdir DIR [--candidates 1,5,10,50] [--proposal push:0.2]
   wmjax launch --num_processes 2 -- train --config configs/gridworld.py --workdir DIR
   wmjax info --config configs/irasim.py:XL [--config.key=value ...]
   wmjax data prepare gridworld|pusht --data_dir DIR [--num_squares N ...]
@@ -125,6 +127,55 @@ def cmd_rollout(args, extra) -> int:
   video_lib.write_png(os.path.join(args.out, "grid.png"), video_lib.frame_grid(list(out)))
   print(f"{out.shape[0]} rollout(s) of {c} context + {out.shape[1] - c} frames (horizon "
         f"{horizon}, checkpoint step {model.step}) -> {args.out}")
+  return 0
+
+
+def _load_for_simulator(args, extra):
+  from wmjax.train.checkpoint import load_model
+  if args.simulator != "pusht":
+    raise SystemExit(f"wmjax: unknown simulator {args.simulator!r}")
+  return load_model(args.workdir, step=args.step, params=args.params, overrides=_overrides(extra))
+
+
+def cmd_eval_policy(args, extra) -> int:
+  """Evaluate policies in the world model and, for ground truth, in the simulator (gym-pusht)
+  from the same initial states: Monte Carlo values (mean ± stderr), Pearson / Spearman / Kendall,
+  rank agreement, MMRV, value gap; writes policy_eval.json, policy_eval.md and one video per
+  policy (simulator | world model | difference)."""
+  from wmjax import pusht
+  from wmjax.eval.pusht_eval import evaluate_policies
+  from wmjax.eval.rewards import reward_from_spec
+  model = _load_for_simulator(args, extra)
+  chunk = model.config.rollout.horizon
+  specs = args.policy or ["push", "push:0.1", "push:0.2", "push:0.5", "stay"]
+  policies = {spec.replace(":", "@"): pusht.policy_from_spec(spec, chunk) for spec in specs}
+  out = args.out or f"{args.workdir}/policy_eval"
+  result = evaluate_policies(model, policies, reward_from_spec(args.reward),
+                             episodes=args.episodes, steps=args.steps, seed=args.seed,
+                             scan=args.scan, out=out, videos=args.videos)
+  print(result["table"])
+  print(f"wrote {out}/policy_eval.json, policy_eval.md and videos/")
+  return 0
+
+
+def cmd_plan(args, extra) -> int:
+  """Model-predictive control by ranking in the simulator (gym-pusht): at each replanning, K
+  chunks from the proposal policy are imagined in one batch, scored by the value function, and
+  the best one's first actions are executed; final simulator coverage for each K."""
+  from wmjax import pusht
+  from wmjax.eval.planning import policy_proposal
+  from wmjax.eval.pusht_eval import plan_in_simulator
+  from wmjax.eval.rewards import reward_from_spec
+  model = _load_for_simulator(args, extra)
+  length = args.plan_length or model.config.rollout.horizon
+  proposal = policy_proposal(pusht.policy_from_spec(args.proposal, length))
+  out = args.out or f"{args.workdir}/plan"
+  candidates = [int(k) for k in args.candidates.split(",")]
+  result = plan_in_simulator(model, proposal, reward_from_spec(args.value), candidates,
+                             episodes=args.episodes, steps=args.steps, seed=args.seed,
+                             execute=args.execute, out=out)
+  print(result["table"])
+  print(f"wrote {out}/plan.json and plan.md")
   return 0
 
 
@@ -346,6 +397,45 @@ def main(argv: list[str] | None = None) -> int:
   roll.add_argument("--normalized", action="store_true",
                     help="the actions are already normalised (skip the checkpoint statistics)")
   roll.set_defaults(func=cmd_rollout)
+
+  def simulator_args(parser, default_out):
+    parser.add_argument("--workdir", required=True, help="training workdir with checkpoints/")
+    parser.add_argument("--simulator", default="pusht", choices=["pusht"],
+                        help="ground-truth simulator the initial states and real steps come from")
+    parser.add_argument("--episodes", type=int, default=32, help="episodes (initial states)")
+    parser.add_argument("--steps", type=int, default=24, help="control steps per episode")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--step", type=int, default=None, help="checkpoint step (latest)")
+    parser.add_argument("--params", default="ema", choices=["ema", "raw"])
+    parser.add_argument("--out", default=None, help=f"output directory (WORKDIR/{default_out})")
+
+  policy = sub.add_parser("eval-policy", help="policy values in the world model vs the simulator",
+                          description=cmd_eval_policy.__doc__)
+  simulator_args(policy, "policy_eval")
+  policy.add_argument("--policy", action="append",
+                      help="push | push:NOISE | stay | module:attribute, repeatable (default: "
+                           "push, push:0.1, push:0.2, push:0.5, stay)")
+  policy.add_argument("--reward", default="coverage",
+                      help="coverage | vlm | classifier:DIR | goal:IMAGE (default coverage)")
+  policy.add_argument("--scan", action="store_true",
+                      help="roll out inside one jitted scan (pure-JAX policies)")
+  policy.add_argument("--videos", type=int, default=4, help="episodes per policy video")
+  policy.set_defaults(func=cmd_eval_policy)
+
+  plan = sub.add_parser("plan", help="model-predictive control by ranking, run in the simulator",
+                        description=cmd_plan.__doc__)
+  simulator_args(plan, "plan")
+  plan.add_argument("--candidates", default="1,5,10,50", help="comma-separated K values")
+  plan.add_argument("--proposal", default="push:0.2",
+                    help="proposal policy: push:NOISE | stay | module:attribute")
+  plan.add_argument("--plan_length", type=int, default=None,
+                    help="actions per candidate (default: the model's rollout horizon)")
+  plan.add_argument("--execute", type=int, default=None,
+                    help="actions executed before replanning (default: the rollout horizon)")
+  plan.add_argument("--value", default="coverage",
+                    help="value function on imagined frames: coverage | vlm | classifier:DIR | "
+                         "goal:IMAGE")
+  plan.set_defaults(func=cmd_plan)
 
   launch = sub.add_parser("launch", help="run a command as N local processes (jax.distributed)",
                           description=cmd_launch.__doc__)

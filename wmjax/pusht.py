@@ -24,11 +24,14 @@ imagined frames, in numpy or inside a jitted scan:
 from __future__ import annotations
 
 import dataclasses
+import importlib
 from typing import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from wmjax.env import frames_to_model
 
 WORKSPACE = 512.0
 GOAL_POSE = (256.0, 256.0, np.pi / 4)  # x, y, theta
@@ -212,8 +215,12 @@ class PushTSimulator:
   """``B`` gym-pusht environments stepped together, rendering ``image_size`` square frames."""
 
   def __init__(self, num_envs: int, image_size: int = 96):
-    import gymnasium as gym
-    import gym_pusht  # noqa: F401  (registers gym_pusht/PushT-v0)
+    try:
+      import gymnasium as gym
+      import gym_pusht  # noqa: F401  (registers gym_pusht/PushT-v0)
+    except ImportError as e:
+      raise ImportError(f"the Push-T simulator needs gym-pusht: pip install 'wmjax[pusht]' ({e})"
+                        ) from e
     if num_envs < 1 or image_size < 8:
       raise ValueError(f"need num_envs >= 1 and image_size >= 8, got {num_envs}, {image_size}")
     self.image_size = image_size
@@ -247,30 +254,69 @@ class PushTSimulator:
     return {"coverage": np.array(coverage, np.float32), "state": np.array(states, np.float32)}
 
 
-def to_model(frames_uint8) -> jax.Array:
-  return jnp.asarray(frames_uint8, jnp.float32) / 127.5 - 1.0
+def stay_actions(frame_info: dict) -> np.ndarray:
+  """Actions ``[B, 2]`` that keep the agent where it is (its current position)."""
+  return frame_info["state"][:, :2].astype(np.float64)
 
 
 def simulate_policy(policy: PolicyFn, states: np.ndarray, steps: int, *, image_size: int,
                     key: jax.Array, context: int = 1) -> dict[str, np.ndarray]:
-  """Run ``policy`` closed loop in the simulator from ``states [B, 5]`` for ``steps`` control
-  steps, calling it on the last ``context`` frames whenever its previous chunk is used up.
-  Returns ``frames [B, steps+1, S, S, 3]`` uint8, ``actions [B, steps, 2]``, ``coverage
-  [B, steps+1]`` and ``state [B, steps+1, 5]``."""
+  """Run ``policy`` closed loop in the simulator from ``states [B, 5]``.
+
+  The first ``context - 1`` steps keep the agent still (so a world model can start from the same
+  ``context`` frames and known actions); then the policy runs for ``steps`` control steps, called
+  on the last ``context`` frames whenever its previous chunk is used up (call ``i`` gets
+  ``fold_in(key, i)``). Returns ``frames [B, context+steps, S, S, 3]`` uint8, ``actions
+  [B, context-1+steps, 2]``, ``coverage [B, context+steps]`` and ``state [B, context+steps, 5]``."""
   sim = PushTSimulator(len(states), image_size)
   frame, info = sim.reset(states)
   frames, coverage, state, actions = [frame], [info["coverage"]], [info["state"]], []
+
+  def advance(action):
+    nonlocal info
+    frame, info = sim.step(action)
+    actions.append(np.asarray(action, np.float64))
+    frames.append(frame)
+    coverage.append(info["coverage"])
+    state.append(info["state"])
+
+  for _ in range(context - 1):
+    advance(stay_actions(info))
   chunk, call = np.zeros((len(states), 0, 2)), 0
   for _ in range(steps):
     if chunk.shape[1] == 0:
       window = np.stack(frames[-context:], 1)
-      chunk = np.asarray(policy(to_model(window), jax.random.fold_in(key, call)))
+      chunk = np.asarray(policy(frames_to_model(window), jax.random.fold_in(key, call)))
       call += 1
-    frame, info = sim.step(chunk[:, 0])
-    actions.append(chunk[:, 0])
+    advance(chunk[:, 0])
     chunk = chunk[:, 1:]
-    frames.append(frame)
-    coverage.append(info["coverage"])
-    state.append(info["state"])
   return {"frames": np.stack(frames, 1), "actions": np.stack(actions, 1).astype(np.float32),
           "coverage": np.stack(coverage, 1), "state": np.stack(state, 1)}
+
+
+@dataclasses.dataclass(frozen=True)
+class StayPolicy:
+  """Keeps the agent where the frame shows it (a do-nothing baseline)."""
+
+  chunk: int = 1
+
+  def __call__(self, frames, key: jax.Array) -> jax.Array:
+    del key
+    _, agent, _ = centroids(jnp.asarray(frames)[:, -1])
+    return jnp.repeat(agent[:, None], self.chunk, axis=1)
+
+
+def policy_from_spec(spec: str, chunk: int) -> PolicyFn:
+  """``push`` / ``push:NOISE`` (:class:`PushPolicy`), ``stay`` (:class:`StayPolicy`), or
+  ``module.path:attribute`` naming any policy callable ``(frames, key) -> [B, k, 2]``."""
+  name, _, argument = spec.partition(":")
+  if name == "push":
+    return PushPolicy(noise=float(argument or 0.0), chunk=chunk)
+  if name == "stay" and not argument:
+    return StayPolicy(chunk=chunk)
+  if argument and name not in ("push", "stay"):
+    try:
+      return getattr(importlib.import_module(name), argument)
+    except (ImportError, AttributeError) as e:
+      raise ValueError(f"policy {spec!r}: cannot import {argument!r} from {name!r}: {e}") from e
+  raise ValueError(f"policy spec must be push, push:NOISE, stay or module:attribute, got {spec!r}")

@@ -6,7 +6,9 @@ driven by the frame-based :class:`wmjax.pusht.PushPolicy` with Gaussian action n
 cycle through ``noise_levels`` (WPE collects with 0.1 / 0.2 / 0.5), so the data holds good
 pushes, poor ones and failures. The action is the agent's target ``(x, y)`` in ``[0, 512]``
 (step ``t``'s action leads to frame ``t + 1``; the last step repeats the agent's position).
-Every step stores the simulator's state (``observation/state``: agent x, y, block x, y, angle),
+Every step stores the simulator's state (``observation/state``: agent x, y, block x, y, angle as
+gym-pusht's ``state`` observation, the block's body origin; :func:`wmjax.pusht.reset_state` turns
+it into the simulator's ``reset_to_state``),
 ``observation/coverage``, ``observation/success`` (coverage > 0.95) and the episode's
 ``observation/policy_noise``; the reward is gym-pusht's ``clip(coverage / 0.95, 0, 1)``.
 """
@@ -84,7 +86,7 @@ def collect(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
                                 image_size=config.image_size,
                                 key=jax.random.key(int(rng.integers(2**31))))
     for i in range(count):
-      actions = np.concatenate([run["actions"][i], run["state"][i, -1:, :2]])
+      actions = np.concatenate([run["actions"][i], run["state"][i, -1:, :2]])  # last: stay
       coverage = run["coverage"][i]
       yield synthetic.GeneratedEpisode(
           images=run["frames"][i], actions=actions.astype(np.float32), instruction=INSTRUCTION,

@@ -191,9 +191,10 @@ def episode_returns(frames, reward_fn: RewardFn, instruction=None, *, start: int
 def agreement(true_values, estimated_values) -> dict[str, float]:
   """How well estimated policy values ``[P]`` match true ones ``[P]`` (``P >= 3``).
 
-  ``pearson`` / ``spearman`` / ``kendall``: correlations; ``pairwise_rank_agreement``: fraction of
-  policy pairs the estimate orders as the truth does (ties in the truth skipped);
-  ``ranking_preserved``: 1.0 when the two orders are identical; ``top1``: 1.0 when the best
+  ``pearson`` / ``spearman`` / ``kendall``: correlations (NaN when either side is constant);
+  ``pairwise_rank_agreement``: fraction of policy pairs the estimate orders as the truth does
+  (pairs tied in the truth skipped; NaN when all are tied); ``ranking_preserved``: 1.0 when every
+  such pair is ordered the same; ``top1``: 1.0 when the best
   policy is the same; ``mmrv``: mean over policies of the largest true-value gap to a policy whose
   order the estimate inverts (SIMPLER's mean maximum rank violation, 0 is best); ``value_gap``:
   mean |estimated - true|."""
@@ -207,13 +208,14 @@ def agreement(true_values, estimated_values) -> dict[str, float]:
   concordant = [np.sign(true[i] - true[j]) == np.sign(est[i] - est[j]) for i, j in pairs]
   inverted = (np.sign(true[:, None] - true[None]) * np.sign(est[:, None] - est[None])) < 0
   violation = np.where(inverted, np.abs(true[:, None] - true[None]), 0.0).max(1)
+  pairwise = float(np.mean(concordant)) if concordant else float("nan")
+  constant = np.ptp(true) == 0 or np.ptp(est) == 0  # correlations undefined
   return {
-      "pearson": float(scipy_stats.pearsonr(true, est).statistic),
-      "spearman": float(scipy_stats.spearmanr(true, est).statistic),
-      "kendall": float(scipy_stats.kendalltau(true, est).statistic),
-      "pairwise_rank_agreement": float(np.mean(concordant)) if concordant else float("nan"),
-      "ranking_preserved": float(np.array_equal(np.argsort(-true, kind="stable"),
-                                                np.argsort(-est, kind="stable"))),
+      "pearson": np.nan if constant else float(scipy_stats.pearsonr(true, est).statistic),
+      "spearman": np.nan if constant else float(scipy_stats.spearmanr(true, est).statistic),
+      "kendall": np.nan if constant else float(scipy_stats.kendalltau(true, est).statistic),
+      "pairwise_rank_agreement": pairwise,
+      "ranking_preserved": float(pairwise == 1.0) if concordant else float("nan"),
       "top1": float(np.argmax(true) == np.argmax(est)),
       "mmrv": float(violation.mean()),
       "value_gap": float(np.abs(est - true).mean()),

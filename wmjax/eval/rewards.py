@@ -184,3 +184,19 @@ def labelled_frames(builder_dir: str, split: str, key: str, threshold: float, *,
     keep = np.sort(np.random.default_rng(seed).choice(len(frames), max_frames, replace=False))
     frames, labels = frames[keep], labels[keep]
   return frames, labels
+
+
+def reward_from_spec(spec: str):
+  """``coverage`` (Push-T), ``vlm`` (:meth:`VLMJudge.from_env`), ``classifier:DIR`` (a saved
+  :class:`SuccessClassifier`) or ``goal:IMAGE`` (:class:`GoalImageDistance` to a PNG / JPG)."""
+  name, _, argument = spec.partition(":")
+  if name == "coverage" and not argument:
+    return pusht_coverage
+  if name == "vlm" and not argument:
+    return VLMJudge.from_env()
+  if name == "classifier" and argument:
+    return SuccessClassifier.load(argument)
+  if name == "goal" and argument:
+    from PIL import Image
+    return GoalImageDistance(np.asarray(Image.open(argument).convert("RGB")))
+  raise ValueError(f"reward must be coverage, vlm, classifier:DIR or goal:IMAGE, got {spec!r}")

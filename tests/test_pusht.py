@@ -1,0 +1,147 @@
+"""Push-T: frame geometry against the simulator, the scripted pusher, the dataset, the reward
+functions, and `wmjax eval-policy` / `wmjax plan` end to end on a tiny model."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from conftest import ROOT
+from wmjax import cli, pusht
+from wmjax.config import load_config
+from wmjax.data import pusht as pusht_data
+from wmjax.data.sources import ArrayRecordEpisodes
+from wmjax.env import frames_to_model
+from wmjax.eval import rewards
+from wmjax.train.loop import train
+
+
+def _render(states, size=48):
+  frames, info = pusht.PushTSimulator(len(states), size).reset(np.asarray(states))
+  return frames, info
+
+
+def test_frame_coverage_and_centroids_follow_the_simulator():
+  rng = np.random.default_rng(0)
+  states = np.concatenate([pusht.reset_state((60, 60), pusht.GOAL_POSE[:2], pusht.GOAL_POSE[2])[None],
+                           pusht.random_initial_states(rng, 24, max_offset=150, max_angle=1.5)])
+  frames, info = _render(states, 96)
+  assert info["coverage"][0] == pytest.approx(1.0)
+  estimate = np.asarray(pusht.frame_coverage(frames_to_model(frames)))
+  assert estimate[0] > 0.97
+  assert np.corrcoef(estimate, info["coverage"])[0, 1] > 0.95
+  block, agent, seen = (np.asarray(x) for x in pusht.centroids(frames_to_model(frames)))
+  assert seen.all()
+  np.testing.assert_allclose(agent, info["state"][:, :2], atol=6.0)
+  # the block's centre of area, in the world, from its body pose
+  centre = np.stack([pusht.body_to_world(np.array(pusht.T_CENTROID), (x, y, a))
+                     for x, y, a in info["state"][:, 2:]])
+  np.testing.assert_allclose(block, centre, atol=12.0)  # the agent may hide part of the block
+  np.testing.assert_allclose(pusht.goal_mask(512).sum(), 6300, rtol=0.02)  # the T's area
+
+
+def test_the_pusher_beats_staying_and_noise_hurts():
+  states = pusht.random_initial_states(np.random.default_rng(1), 12)
+  final = {}
+  for spec in ("push", "push:0.5", "stay"):
+    run = pusht.simulate_policy(pusht.policy_from_spec(spec, 4), states, 24, image_size=48,
+                                key=jax.random.key(0), context=2)
+    assert run["frames"].shape == (12, 26, 48, 48, 3) and run["actions"].shape == (12, 25, 2)
+    np.testing.assert_allclose(run["actions"][:, 0], states[:, :2], atol=1e-3)  # the still step
+    final[spec] = run["coverage"][:, -1].mean()
+  assert final["push"] > final["stay"] + 0.05 and final["push"] > final["push:0.5"] + 0.05
+  with pytest.raises(ValueError, match="policy spec"):
+    pusht.policy_from_spec("teleport", 4)
+
+
+def test_prepare_command_writes_labelled_episodes(tmp_path):
+  assert cli.main(["data", "prepare", "pusht", "--data_dir", str(tmp_path),
+                   "--train_episodes", "4", "--test_episodes", "2", "--episode_length", "6",
+                   "--noise_levels", "0,0.5", "--batch", "3"]) == 0
+  builder_dir = pusht_data.prepare(str(tmp_path), pusht_data.PushTConfig(
+      train_episodes=4, test_episodes=2, episode_length=6, noise_levels=(0, 0.5), batch=3))
+  source = ArrayRecordEpisodes(builder_dir, "train", "pusht")
+  assert len(source) == 4
+  noise = [float(source.episode(i).extras["policy_noise"][0]) for i in range(4)]
+  assert sorted(noise) == [0.0, 0.0, 0.5, 0.5]  # levels cycle (TFDS shuffles the order)
+  episode = source.episode(1)
+  assert episode.actions.shape == (6, 2) and episode.extras["state"].shape == (6, 5)
+  # the stored coverage is the simulator's for the stored state (gym-pusht's observation layout)
+  agent_x, agent_y, x, y, angle = episode.extras["state"][-1].astype(np.float64)
+  _, info = _render(pusht.reset_state((agent_x, agent_y), (x, y), angle)[None])
+  assert episode.extras["coverage"][-1] == pytest.approx(info["coverage"][0], abs=0.02)
+  assert episode.extras["success"].dtype == bool
+
+
+def test_reward_functions():
+  states = np.stack([pusht.reset_state((60, 60), pusht.GOAL_POSE[:2], pusht.GOAL_POSE[2]),
+                     pusht.reset_state((60, 60), (150, 380), 0.3)])
+  frames, _ = _render(states)
+  videos = np.stack([frames, frames[::-1]])  # [2 rollouts, 2 frames]
+  np.testing.assert_allclose(rewards.pusht_coverage(videos), pusht.frame_coverage(
+      frames_to_model(frames[::-1])), rtol=1e-6)
+  distance = rewards.GoalImageDistance(frames[0])(videos)
+  assert distance[1] == 0.0 and distance[0] < -0.01
+  with pytest.raises(ValueError, match="goal image must be"):
+    rewards.GoalImageDistance(frames[0, :10])(videos)
+  with pytest.raises(ValueError, match="reward must be"):
+    rewards.reward_from_spec("iou")
+
+
+def test_success_classifier_learns_and_round_trips(tmp_path):
+  rng = np.random.default_rng(0)
+  states = pusht.random_initial_states(rng, 48, max_offset=160, max_angle=1.0)
+  frames, info = _render(states)
+  labels = info["coverage"] > 0.3
+  classifier, metrics = rewards.train_success_classifier(frames, labels, steps=150,
+                                                         batch_size=32, label="coverage > 0.3")
+  accuracy = ((classifier.probabilities(frames) > 0.5) == labels).mean()
+  assert accuracy > 0.85, (accuracy, labels.mean(), metrics)
+  loaded = rewards.SuccessClassifier.load(classifier.save(str(tmp_path / "clf")))
+  np.testing.assert_allclose(loaded(frames[:, None]), classifier(frames[:, None]), atol=1e-6)
+  assert loaded.label == "coverage > 0.3"
+  with pytest.raises(ValueError, match="both classes"):
+    rewards.train_success_classifier(frames, np.zeros(48, bool))
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+  """A tiny Push-T model trained for a few steps on a few simulated episodes."""
+  root = tmp_path_factory.mktemp("pusht")
+  overrides = {
+      "data.data_dir": repr(str(root / "data")), "data.pusht.train_episodes": 6,
+      "data.pusht.test_episodes": 2, "data.pusht.episode_length": 10, "data.pusht.batch": 6,
+      "data.pusht.image_size": 16, "frame_shape": (16, 16, 3),
+      "model.hidden_size": 32, "model.depth": 2, "model.num_heads": 2,
+      "batch_size": 8, "train.num_steps": 2, "train.log_every": 1, "train.checkpoint_every": 2,
+      "train.eval_every": 1000, "train.eval_windows": 2, "sampling.num_steps": 2,
+      "optim.warmup_steps": 1, "optim.total_steps": 2}
+  config = load_config(str(ROOT / "configs" / "pusht.py"),
+                       [f"{k}={v}" for k, v in overrides.items()])
+  train(config, str(root / "run"))
+  return str(root / "run")
+
+
+def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
+  out = tmp_path / "policy"
+  assert cli.main(["eval-policy", "--workdir", workdir, "--episodes", "2", "--steps", "5",
+                   "--policy", "push", "--policy", "push:0.5", "--policy", "stay",
+                   "--videos", "1", "--out", str(out), "--scan"]) == 0
+  result = json.loads((out / "policy_eval.json").read_text())
+  assert list(result["policies"]) == ["push", "push@0.5", "stay"]
+  for values in result["policies"].values():
+    assert set(values) == {"simulator", "simulator_reward", "world_model"}
+    assert 0.0 <= values["simulator"]["mean"] <= 1.0 and values["world_model"]["rollouts"] == 2
+  pearson = result["agreement"]["pearson"]
+  assert pearson is None or np.isnan(pearson) or -1.0 <= pearson <= 1.0
+  assert (out / "videos" / "push@0.5.mp4").stat().st_size > 0
+  assert "| push |" in (out / "policy_eval.md").read_text()
+
+  plan_out = tmp_path / "plan"
+  assert cli.main(["plan", "--workdir", workdir, "--episodes", "2", "--steps", "6",
+                   "--candidates", "1,3", "--out", str(plan_out)]) == 0
+  plan = json.loads((plan_out / "plan.json").read_text())
+  assert set(plan["candidates"]) == {"1", "3"}
+  assert plan["candidates"]["3"]["replans"] == 2  # 6 steps, 4 executed per plan
+  assert "| 3 |" in capsys.readouterr().out
