@@ -6,6 +6,7 @@ import json
 import jax
 import numpy as np
 import pytest
+from PIL import Image
 
 from conftest import ROOT
 from wmjax import cli, pusht
@@ -124,19 +125,25 @@ def workdir(tmp_path_factory):
 
 
 def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
+  goal = tmp_path / "goal.png"
+  Image.fromarray(np.full((16, 16, 3), 255, np.uint8)).save(goal)
   out = tmp_path / "policy"
   assert cli.main(["eval-policy", "--workdir", workdir, "--episodes", "2", "--steps", "5",
                    "--policy", "push", "--policy", "push:0.5", "--policy", "stay",
+                   "--reward", "coverage", "--reward", f"goal:{goal}",
                    "--videos", "1", "--out", str(out), "--scan"]) == 0
   result = json.loads((out / "policy_eval.json").read_text())
   assert list(result["policies"]) == ["push", "push@0.5", "stay"]
   for values in result["policies"].values():
-    assert set(values) == {"simulator", "simulator_reward", "world_model"}
-    assert 0.0 <= values["simulator"]["mean"] <= 1.0 and values["world_model"]["rollouts"] == 2
-  pearson = result["agreement"]["pearson"]
+    assert set(values) == {"simulator", "coverage", f"goal:{goal}"}
+    assert 0.0 <= values["simulator"]["mean"] <= 1.0
+    assert values["coverage"]["world_model"]["rollouts"] == 2
+    assert values[f"goal:{goal}"]["simulator_reward"]["mean"] <= 0.0  # -MSE
+  pearson = result["rewards"]["coverage"]["agreement"]["pearson"]
   assert pearson is None or np.isnan(pearson) or -1.0 <= pearson <= 1.0
   assert (out / "videos" / "push@0.5.mp4").stat().st_size > 0
-  assert "| push |" in (out / "policy_eval.md").read_text()
+  report = (out / "policy_eval.md").read_text()
+  assert "## Reward: coverage" in report and "| push |" in report
 
   plan_out = tmp_path / "plan"
   assert cli.main(["plan", "--workdir", workdir, "--episodes", "2", "--steps", "6",

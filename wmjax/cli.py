@@ -150,10 +150,11 @@ def cmd_eval_policy(args, extra) -> int:
   specs = args.policy or ["push", "push:0.1", "push:0.2", "push:0.5", "stay"]
   policies = {spec.replace(":", "@"): pusht.policy_from_spec(spec, chunk) for spec in specs}
   out = args.out or f"{args.workdir}/policy_eval"
-  result = evaluate_policies(model, policies, reward_from_spec(args.reward),
-                             episodes=args.episodes, steps=args.steps, seed=args.seed,
-                             scan=args.scan, out=out, videos=args.videos)
-  print(result["table"])
+  rewards = {spec: reward_from_spec(spec) for spec in args.reward or ["coverage"]}
+  result = evaluate_policies(model, policies, rewards, episodes=args.episodes, steps=args.steps,
+                             seed=args.seed, scan=args.scan, out=out, videos=args.videos)
+  with open(f"{out}/policy_eval.md") as f:
+    print(f.read())
   print(f"wrote {out}/policy_eval.json, policy_eval.md and videos/")
   return 0
 
@@ -415,8 +416,9 @@ def main(argv: list[str] | None = None) -> int:
   policy.add_argument("--policy", action="append",
                       help="push | push:NOISE | stay | module:attribute, repeatable (default: "
                            "push, push:0.1, push:0.2, push:0.5, stay)")
-  policy.add_argument("--reward", default="coverage",
-                      help="coverage | vlm | classifier:DIR | goal:IMAGE (default coverage)")
+  policy.add_argument("--reward", action="append",
+                      help="coverage | vlm | classifier:DIR | goal:IMAGE, repeatable, all scored "
+                           "on the same rollouts (default: coverage)")
   policy.add_argument("--scan", action="store_true",
                       help="roll out inside one jitted scan (pure-JAX policies)")
   policy.add_argument("--videos", type=int, default=4, help="episodes per policy video")

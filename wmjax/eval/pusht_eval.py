@@ -44,19 +44,23 @@ def _image_size(model) -> int:
   return h
 
 
-def evaluate_policies(model, policies: dict[str, pusht.PolicyFn], reward_fn: RewardFn, *,
-                      episodes: int, steps: int, seed: int = 0, scan: bool = False,
-                      out: str | None = None, videos: int = 4) -> dict[str, Any]:
+def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
+                      rewards: dict[str, RewardFn], *, episodes: int, steps: int, seed: int = 0,
+                      scan: bool = False, out: str | None = None, videos: int = 4
+                      ) -> dict[str, Any]:
   """Values of ``policies`` in the simulator and in the world model ``model`` (a
-  :class:`wmjax.train.checkpoint.LoadedModel`), and their agreement.
+  :class:`wmjax.train.checkpoint.LoadedModel`), and their agreement, for every reward function
+  in ``rewards`` (all scored on the same rollouts).
 
-  Per policy: ``simulator`` (true final coverage), ``simulator_reward`` (``reward_fn`` on the
-  simulator's frames: what a perfect world model would score) and ``world_model`` (``reward_fn``
-  on the imagined frames), each mean ± standard error over ``episodes``. ``agreement``: the world
-  model's values against the simulator's; ``agreement_same_reward``: against
-  ``simulator_reward``. ``scan``: roll out inside one jitted scan (pure-JAX policies only)."""
-  if len(policies) < 3:
-    raise ValueError(f"agreement needs at least 3 policies, got {len(policies)}")
+  Per policy: ``simulator`` (true final coverage) and, per reward, ``simulator_reward`` (the
+  reward on the simulator's frames: what a perfect world model would score) and ``world_model``
+  (the reward on the imagined frames), each mean ± standard error over ``episodes``. Per reward,
+  ``agreement`` compares the world model's values with the simulator's and
+  ``agreement_same_reward`` with ``simulator_reward``. ``scan``: roll out inside one jitted scan
+  (pure-JAX policies only)."""
+  if len(policies) < 3 or not rewards:
+    raise ValueError(f"need at least 3 policies and a reward, got {len(policies)} policies and "
+                     f"{len(rewards)} rewards")
   config = model.config
   c, h = config.rollout.context, config.rollout.horizon
   size = _image_size(model)
@@ -79,36 +83,48 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn], reward_fn: Rew
       env = WorldModelEnv.from_model(model, seed=rollout_key)
       imagined = policy_eval.env_episodes(env, policy, start, steps, policy_key,
                                           context_actions=known)["frames"]
-    values[name] = {
-        "simulator": policy_eval.policy_value(truth["coverage"][:, -1]),
-        "simulator_reward": policy_eval.policy_value(
-            policy_eval.episode_returns(truth["frames"], reward_fn, start=c - 1)),
-        "world_model": policy_eval.policy_value(
-            policy_eval.episode_returns(imagined, reward_fn, start=c - 1)),
-    }
+    values[name] = {"simulator": policy_eval.policy_value(truth["coverage"][:, -1])}
+    for reward, reward_fn in rewards.items():
+      values[name][reward] = {
+          "simulator_reward": policy_eval.policy_value(
+              policy_eval.episode_returns(truth["frames"], reward_fn, start=c - 1)),
+          "world_model": policy_eval.policy_value(
+              policy_eval.episode_returns(imagined, reward_fn, start=c - 1))}
     if out and videos:
       rows = [comparison(truth["frames"][i], imagined[i]) for i in range(min(videos, episodes))]
       videos_written[name] = write_video(os.path.join(out, "videos", f"{name}.mp4"),
                                          stack_rows(rows))
 
-  def column(key):
-    return [values[n][key] for n in names]
-
-  result = {
-      "policies": {n: {k: v.to_dict() for k, v in values[n].items()} for n in names},
-      "agreement": policy_eval.agreement([v.mean for v in column("simulator")],
-                                         [v.mean for v in column("world_model")]),
-      "agreement_same_reward": policy_eval.agreement(
-          [v.mean for v in column("simulator_reward")], [v.mean for v in column("world_model")]),
-      "episodes": episodes, "steps": steps, "seed": seed, "videos": videos_written,
-  }
-  result["table"] = policy_eval.agreement_table(names, column("simulator"),
-                                                column("world_model"), result["agreement"])
-  result["table_same_reward"] = policy_eval.agreement_table(
-      names, column("simulator_reward"), column("world_model"), result["agreement_same_reward"])
+  simulator = [values[n]["simulator"] for n in names]
+  result = {"policies": {n: {"simulator": values[n]["simulator"].to_dict()} for n in names},
+            "rewards": {}, "episodes": episodes, "steps": steps, "seed": seed,
+            "videos": videos_written}
+  for reward in rewards:
+    model_values = [values[n][reward]["world_model"] for n in names]
+    same_reward = [values[n][reward]["simulator_reward"] for n in names]
+    for n in names:
+      result["policies"][n][reward] = {k: v.to_dict() for k, v in values[n][reward].items()}
+    agreement = policy_eval.agreement([v.mean for v in simulator],
+                                      [v.mean for v in model_values])
+    agreement_same = policy_eval.agreement([v.mean for v in same_reward],
+                                           [v.mean for v in model_values])
+    result["rewards"][reward] = {
+        "agreement": agreement, "agreement_same_reward": agreement_same,
+        "table": policy_eval.agreement_table(names, simulator, model_values, agreement),
+        "table_same_reward": policy_eval.agreement_table(names, same_reward, model_values,
+                                                         agreement_same)}
   if out:
-    _write(out, "policy_eval", result)
+    _write(out, "policy_eval", result, _policy_report(result))
   return result
+
+
+def _policy_report(result: dict) -> str:
+  parts = []
+  for reward, tables in result["rewards"].items():
+    parts += [f"## Reward: {reward}", "", "World model against the simulator's true coverage:", "",
+              tables["table"], "", f"World model against {reward} on the simulator's frames:", "",
+              tables["table_same_reward"], ""]
+  return "\n".join(parts)
 
 
 def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
@@ -149,7 +165,7 @@ def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
   result = {"candidates": rows, "episodes": episodes, "steps": steps, "seed": seed,
             "table": planning_table(rows)}
   if out:
-    _write(out, "plan", result)
+    _write(out, "plan", result, result["table"] + "\n")
   return result
 
 
@@ -161,12 +177,9 @@ def planning_table(rows: dict[int, dict]) -> str:
   return "\n".join(lines)
 
 
-def _write(out: str, name: str, result: dict) -> None:
+def _write(out: str, name: str, result: dict, report: str) -> None:
   os.makedirs(out, exist_ok=True)
   with open(os.path.join(out, f"{name}.json"), "w") as f:
     json.dump(result, f, indent=2)
   with open(os.path.join(out, f"{name}.md"), "w") as f:
-    f.write(result["table"] + "\n")
-    if "table_same_reward" in result:
-      f.write("\nAgainst the same reward on the simulator's frames:\n\n")
-      f.write(result["table_same_reward"] + "\n")
+    f.write(report)

@@ -46,6 +46,9 @@ def learning_rate_schedule(optim: ml_collections.ConfigDict) -> optax.Schedule:
   if optim.schedule == "warmup":
     return optax.linear_schedule(0.0, lr, max(warmup, 1))
   if optim.schedule == "cosine":
+    if warmup >= optim.total_steps:
+      raise ValueError(f"the cosine schedule needs optim.warmup_steps < optim.total_steps, got "
+                       f"{warmup} and {optim.total_steps}")
     return optax.warmup_cosine_decay_schedule(0.0, lr, max(warmup, 1), max(optim.total_steps, 2))
   raise ValueError(f"optim.schedule must be one of {SCHEDULES}, got {optim.schedule!r}")
 
