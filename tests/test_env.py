@@ -95,3 +95,25 @@ def test_window_must_fit_the_model():
   wm, params = tiny_world_model("wpe_600m.py", frame_shape=(8, 8, 16))
   with pytest.raises(ValueError, match=r"context \+ horizon <= 8"):
     WorldModelEnv(wm, params, context=4, horizon=5)
+
+
+def test_keyboard_driver_maps_keys_to_action_chunks():
+  from wmjax.interactive import KeyboardDriver
+  wm, params = tiny_world_model("irasim.py:S", "sampling.num_steps=2", "model.in_channels=3",
+                                "model.action_dim=3", frame_shape=(8, 8, 3))
+  env = WorldModelEnv(wm, params, context=1, horizon=3, seed=0)
+  driver = KeyboardDriver(env, speed=2.0, axes=(1, 0), rest=[0.0, 0.0, 1.0])
+  np.testing.assert_array_equal(driver.action("ArrowUp"), [0.0, -2.0, 1.0])  # (x, y) slots
+  np.testing.assert_array_equal(driver.action("ArrowRight"), [2.0, 0.0, 1.0])
+  driver.reset(np.zeros((1, 1, 8, 8, 3), np.uint8))
+  new = driver.press("ArrowLeft")
+  assert new.shape == (3, 8, 8, 3) and driver.video().shape == (4, 8, 8, 3)
+  # the frames are the world model's for those actions
+  replay = WorldModelEnv(wm, params, context=1, horizon=3, seed=0)
+  replay.reset(np.zeros((1, 1, 8, 8, 3), np.uint8))
+  expected, *_ = replay.step(np.repeat(driver.action("ArrowLeft")[None, None], 3, axis=1))
+  np.testing.assert_allclose(new, expected[0], atol=1e-6)
+  with pytest.raises(ValueError, match="key must be one of"):
+    driver.press("Space")
+  with pytest.raises(ValueError, match="axes must be two different"):
+    KeyboardDriver(env, axes=(0, 0))

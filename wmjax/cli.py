@@ -403,15 +403,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workdir", required=True, help="training workdir with checkpoints/")
     parser.add_argument("--simulator", default="pusht", choices=["pusht"],
                         help="ground-truth simulator the initial states and real steps come from")
-    parser.add_argument("--episodes", type=int, default=32, help="episodes (initial states)")
-    parser.add_argument("--steps", type=int, default=24, help="control steps per episode")
+    parser.add_argument("--episodes", type=int, default=32,
+                        help="episodes, i.e. initial states (default 32)")
+    parser.add_argument("--steps", type=int, default=24,
+                        help="control steps per episode (default 24)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--step", type=int, default=None, help="checkpoint step (latest)")
     parser.add_argument("--params", default="ema", choices=["ema", "raw"])
     parser.add_argument("--out", default=None, help=f"output directory (WORKDIR/{default_out})")
 
+  overrides_note = ("Inference settings of the checkpoint's config can be overridden, e.g. "
+                    "--config.sampling.num_steps=4.")
   policy = sub.add_parser("eval-policy", help="policy values in the world model vs the simulator",
-                          description=cmd_eval_policy.__doc__)
+                          description=cmd_eval_policy.__doc__, epilog=overrides_note)
   simulator_args(policy, "policy_eval")
   policy.add_argument("--policy", action="append",
                       help="push | push:NOISE | stay | module:attribute, repeatable (default: "
@@ -425,18 +429,20 @@ def main(argv: list[str] | None = None) -> int:
   policy.set_defaults(func=cmd_eval_policy)
 
   plan = sub.add_parser("plan", help="model-predictive control by ranking, run in the simulator",
-                        description=cmd_plan.__doc__)
+                        description=cmd_plan.__doc__, epilog=overrides_note)
   simulator_args(plan, "plan")
-  plan.add_argument("--candidates", default="1,5,10,50", help="comma-separated K values")
+  plan.add_argument("--candidates", default="1,5,10,50",
+                    help="comma-separated K values (default 1,5,10,50)")
   plan.add_argument("--proposal", default="push:0.2",
-                    help="proposal policy: push:NOISE | stay | module:attribute")
+                    help="proposal policy: push:NOISE | stay | module:attribute (default "
+                         "push:0.2)")
   plan.add_argument("--plan_length", type=int, default=None,
                     help="actions per candidate (default: the model's rollout horizon)")
   plan.add_argument("--execute", type=int, default=None,
                     help="actions executed before replanning (default: the rollout horizon)")
   plan.add_argument("--value", default="coverage",
                     help="value function on imagined frames: coverage | vlm | classifier:DIR | "
-                         "goal:IMAGE")
+                         "goal:IMAGE (default coverage)")
   plan.set_defaults(func=cmd_plan)
 
   launch = sub.add_parser("launch", help="run a command as N local processes (jax.distributed)",

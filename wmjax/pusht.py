@@ -15,7 +15,9 @@ imagined frames, in numpy or inside a jitted scan:
 * :func:`goal_mask` / :func:`frame_coverage`: goal-region pixels and the fraction the block covers;
 * :class:`PushPolicy`: a frame-based controller that walks around the block and pushes its centre
   towards the goal's, with Gaussian action noise (``noise`` in units of the 512-px workspace, as
-  WPE's 0.1 / 0.2 / 0.5 levels); a pure function ``(frames, key) -> action chunk``.
+  WPE's 0.1 / 0.2 / 0.5 levels); a pure function ``(frames, key) -> action chunk``;
+  :class:`StayPolicy` (do nothing) and :func:`policy_from_spec` (``push:0.2``, ``stay``,
+  ``module:attribute``) for the command line.
 
 :class:`PushTSimulator` steps ``B`` gym-pusht environments together and
 :func:`simulate_policy` runs a policy in it closed loop, for ground-truth values.
