@@ -71,7 +71,7 @@ def main(argv=None) -> int:
                                         smoke=args.smoke)
   common = ["--workdir", model_dir, "--episodes", str(episodes), "--steps", str(steps)]
   run("eval-policy", *common, "--reward", "coverage", "--reward",
-      f"classifier:{classifier_dir}", "--out", os.path.join(workdir, "policy_eval"))
+      f"classifier:{classifier_dir}", "--scan", "--out", os.path.join(workdir, "policy_eval"))
   run("plan", "--workdir", model_dir, "--episodes", str(plan_episodes), "--steps",
       str(plan_steps), "--candidates", candidates, "--out", os.path.join(workdir, "plan"),
       f"--config.sampling.num_steps={args.plan_sampling_steps}")
