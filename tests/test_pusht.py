@@ -147,8 +147,9 @@ def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
 
   plan_out = tmp_path / "plan"
   assert cli.main(["plan", "--workdir", workdir, "--episodes", "2", "--steps", "6",
-                   "--candidates", "1,3", "--out", str(plan_out)]) == 0
+                   "--candidates", "1,3", "--lookahead", "--out", str(plan_out)]) == 0
   plan = json.loads((plan_out / "plan.json").read_text())
   assert set(plan["candidates"]) == {"1", "3"}
-  assert plan["candidates"]["3"]["replans"] == 2  # 6 steps, 4 executed per plan
+  assert plan["candidates"]["3"]["world_model"]["replans"] == 2  # 6 steps, 4 executed per plan
+  assert set(plan["candidates"]["1"]) == {"world_model", "simulator"}
   assert "| 3 |" in capsys.readouterr().out

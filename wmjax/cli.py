@@ -174,7 +174,7 @@ def cmd_plan(args, extra) -> int:
   candidates = [int(k) for k in args.candidates.split(",")]
   result = plan_in_simulator(model, proposal, reward_from_spec(args.value), candidates,
                              episodes=args.episodes, steps=args.steps, seed=args.seed,
-                             execute=args.execute, out=out)
+                             execute=args.execute, lookahead=args.lookahead, out=out)
   print(result["table"])
   print(f"wrote {out}/plan.json and plan.md")
   return 0
@@ -443,6 +443,8 @@ def main(argv: list[str] | None = None) -> int:
   plan.add_argument("--value", default="coverage",
                     help="value function on imagined frames: coverage | vlm | classifier:DIR | "
                          "goal:IMAGE (default coverage)")
+  plan.add_argument("--lookahead", action="store_true",
+                    help="also plan with the simulator itself as the model (a reference)")
   plan.set_defaults(func=cmd_plan)
 
   launch = sub.add_parser("launch", help="run a command as N local processes (jax.distributed)",

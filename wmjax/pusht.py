@@ -255,6 +255,11 @@ class PushTSimulator:
       states.append([*inner.agent.position, *inner.block.position, inner.block.angle])
     return {"coverage": np.array(coverage, np.float32), "state": np.array(states, np.float32)}
 
+  def reset_states(self) -> np.ndarray:
+    """``[B, 5]`` ``reset_to_state`` vectors of the current poses (velocities are not kept)."""
+    states = self._info()["state"].astype(np.float64)
+    return np.stack([reset_state(s[:2], s[2:4], s[4]) for s in states])
+
 
 def stay_actions(frame_info: dict) -> np.ndarray:
   """Actions ``[B, 2]`` that keep the agent where it is (its current position)."""

@@ -73,7 +73,8 @@ def main(argv=None) -> int:
   run("eval-policy", *common, "--reward", "coverage", "--reward",
       f"classifier:{classifier_dir}", "--scan", "--out", os.path.join(workdir, "policy_eval"))
   run("plan", "--workdir", model_dir, "--episodes", str(plan_episodes), "--steps",
-      str(plan_steps), "--candidates", candidates, "--out", os.path.join(workdir, "plan"),
+      str(plan_steps), "--candidates", candidates, "--lookahead", "--out",
+      os.path.join(workdir, "plan"),
       f"--config.sampling.num_steps={args.plan_sampling_steps}")
 
   results = {"classifier": classifier_metrics}

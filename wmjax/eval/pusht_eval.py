@@ -127,41 +127,76 @@ def _policy_report(result: dict) -> str:
   return "\n".join(parts)
 
 
+class SimulatorLookahead(planning.Planner):
+  """Ranks candidates by running them in copies of the simulator reset to the environments'
+  current poses (velocities zeroed): the choice a perfect world model would make, as a
+  reference for the world model's planner."""
+
+  def __init__(self, sim: pusht.PushTSimulator, proposal, value_fn, num_candidates: int,
+               horizon: int):
+    super().__init__(None, None, proposal, value_fn, num_candidates, horizon)
+    self.sim = sim
+    self._lookahead = None
+
+  def imagine(self, frames, context_actions, candidates, rng):
+    del context_actions, rng
+    candidates = np.asarray(candidates)
+    b, k, n = candidates.shape[:3]
+    if self._lookahead is None:
+      self._lookahead = pusht.PushTSimulator(b * k, self.sim.image_size)
+    frame, _ = self._lookahead.reset(np.repeat(self.sim.reset_states(), k, axis=0))
+    rollout = [np.repeat(np.asarray(frames, np.uint8)[:, :-1], k, axis=0), frame[:, None]]
+    for t in range(n):
+      rollout.append(self._lookahead.step(candidates[:, :, t].reshape(b * k, 2))[0][:, None])
+    video = np.concatenate(rollout, 1)
+    return video.reshape((b, k) + video.shape[1:])
+
+
 def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
                       candidates: list[int], *, episodes: int, steps: int, seed: int = 0,
-                      execute: int | None = None, out: str | None = None) -> dict[str, Any]:
+                      execute: int | None = None, lookahead: bool = False,
+                      out: str | None = None) -> dict[str, Any]:
   """Final simulator coverage of model-predictive control with ``K`` candidates per replanning,
-  for each ``K`` in ``candidates`` (``K = 1``: the proposal alone), from the same states."""
+  for each ``K`` in ``candidates`` (``K = 1``: the proposal alone), from the same states;
+  ``lookahead`` adds the same control with :class:`SimulatorLookahead` in place of the world
+  model, for reference."""
   config = model.config
   c, h = config.rollout.context, config.rollout.horizon
   size = _image_size(model)
   states = initial_states(config, episodes, seed)
   rows = {}
+  planners = ["world_model"] + (["simulator"] if lookahead else [])
   for k in candidates:
-    planner = planning.Planner(
-        model.world_model, model.params, proposal, value_fn, num_candidates=k, horizon=h,
-        action_stats=model.action_stats, normalization=config.data.normalization,
-        codec=model.codec)
-    sim = pusht.PushTSimulator(episodes, size)
-    frame, info = sim.reset(states)
-    frames, known = [frame], []
-    for _ in range(c - 1):  # still steps: the shared context
-      known.append(pusht.stay_actions(info))
-      frame, info = sim.step(known[-1])
-      frames.append(frame)
-    coverage = []
+    rows[k] = {}
+    for kind in planners:
+      sim = pusht.PushTSimulator(episodes, size)
+      if kind == "world_model":
+        planner = planning.Planner(
+            model.world_model, model.params, proposal, value_fn, num_candidates=k, horizon=h,
+            action_stats=model.action_stats, normalization=config.data.normalization,
+            codec=model.codec)
+      else:
+        planner = SimulatorLookahead(sim, proposal, value_fn, k, h)
+      frame, info = sim.reset(states)
+      frames, known = [frame], []
+      for _ in range(c - 1):  # still steps: the shared context
+        known.append(pusht.stay_actions(info))
+        frame, info = sim.step(known[-1])
+        frames.append(frame)
+      coverage = []
 
-    def step_fn(action):
-      frame, step_info = sim.step(action)
-      coverage.append(step_info["coverage"])
-      return frame
+      def step_fn(action, sim=sim, coverage=coverage):
+        frame, step_info = sim.step(action)
+        coverage.append(step_info["coverage"])
+        return frame
 
-    run = planning.run_closed_loop(
-        planner, step_fn, np.stack(frames, 1), steps, jax.random.key(seed + 7),
-        context_actions=np.stack(known, 1) if known else None, execute=execute or h, context=c)
-    final = policy_eval.policy_value(coverage[-1])
-    rows[k] = {"final_coverage": final.to_dict(), "replans": len(run["plans"]),
-               "per_episode": [float(x) for x in coverage[-1]]}
+      run = planning.run_closed_loop(
+          planner, step_fn, np.stack(frames, 1), steps, jax.random.key(seed + 7),
+          context_actions=np.stack(known, 1) if known else None, execute=execute or h,
+          context=c)
+      final = policy_eval.policy_value(coverage[-1])
+      rows[k][kind] = {"final_coverage": final.to_dict(), "replans": len(run["plans"]),
+                       "per_episode": [float(x) for x in coverage[-1]]}
   result = {"candidates": rows, "episodes": episodes, "steps": steps, "seed": seed,
             "table": planning_table(rows)}
   if out:
@@ -170,10 +205,14 @@ def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
 
 
 def planning_table(rows: dict[int, dict]) -> str:
-  lines = ["| K | final coverage (simulator) | replans |", "|---|---|---|"]
+  """Markdown: final simulator coverage (mean ± stderr) per K and planner."""
+  kinds = list(next(iter(rows.values())))
+  titles = {"world_model": "world-model planner", "simulator": "simulator lookahead"}
+  lines = ["| K | " + " | ".join(titles[k] for k in kinds) + " |", "|---" * (len(kinds) + 1) + "|"]
   for k, row in rows.items():
-    final = row["final_coverage"]
-    lines.append(f"| {k} | {final['mean']:.3f} ± {final['stderr']:.3f} | {row['replans']} |")
+    cells = [f"{row[kind]['final_coverage']['mean']:.3f} ± "
+             f"{row[kind]['final_coverage']['stderr']:.3f}" for kind in kinds]
+    lines.append(f"| {k} | " + " | ".join(cells) + " |")
   return "\n".join(lines)
 
 
