@@ -22,6 +22,7 @@ import jax
 import numpy as np
 
 from wmjax import pusht
+from wmjax.data.pusht import INSTRUCTION
 from wmjax.env import WorldModelEnv
 from wmjax.eval import planning, policy_eval
 from wmjax.eval.video import comparison, stack_rows, write_video
@@ -86,10 +87,10 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
     values[name] = {"simulator": policy_eval.policy_value(truth["coverage"][:, -1])}
     for reward, reward_fn in rewards.items():
       values[name][reward] = {
-          "simulator_reward": policy_eval.policy_value(
-              policy_eval.episode_returns(truth["frames"], reward_fn, start=c - 1)),
-          "world_model": policy_eval.policy_value(
-              policy_eval.episode_returns(imagined, reward_fn, start=c - 1))}
+          "simulator_reward": policy_eval.policy_value(policy_eval.episode_returns(
+              truth["frames"], reward_fn, INSTRUCTION, start=c - 1)),
+          "world_model": policy_eval.policy_value(policy_eval.episode_returns(
+              imagined, reward_fn, INSTRUCTION, start=c - 1))}
     if out and videos:
       rows = [comparison(truth["frames"][i], imagined[i]) for i in range(min(videos, episodes))]
       videos_written[name] = write_video(os.path.join(out, "videos", f"{name}.mp4"),
@@ -134,7 +135,8 @@ class SimulatorLookahead(planning.Planner):
 
   def __init__(self, sim: pusht.PushTSimulator, proposal, value_fn, num_candidates: int,
                horizon: int):
-    super().__init__(None, None, proposal, value_fn, num_candidates, horizon)
+    super().__init__(None, None, proposal, value_fn, num_candidates, horizon,
+                     instruction=INSTRUCTION)
     self.sim = sim
     self._lookahead = None
 
@@ -174,7 +176,7 @@ def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
         planner = planning.Planner(
             model.world_model, model.params, proposal, value_fn, num_candidates=k, horizon=h,
             action_stats=model.action_stats, normalization=config.data.normalization,
-            codec=model.codec)
+            codec=model.codec, instruction=INSTRUCTION)
       else:
         planner = SimulatorLookahead(sim, proposal, value_fn, k, h)
       frame, info = sim.reset(states)
