@@ -132,8 +132,6 @@ def cmd_rollout(args, extra) -> int:
 
 def _load_for_simulator(args, extra):
   from wmjax.train.checkpoint import load_model
-  if args.simulator != "pusht":
-    raise SystemExit(f"wmjax: unknown simulator {args.simulator!r}")
   return load_model(args.workdir, step=args.step, params=args.params, overrides=_overrides(extra))
 
 
@@ -143,7 +141,7 @@ def cmd_eval_policy(args, extra) -> int:
   rank agreement, MMRV, value gap; writes policy_eval.json, policy_eval.md and one video per
   policy (simulator | world model | difference)."""
   from wmjax import pusht
-  from wmjax.eval.pusht_eval import evaluate_policies
+  from wmjax.eval.pusht_eval import evaluate_policies, policy_report
   from wmjax.eval.rewards import reward_from_spec
   model = _load_for_simulator(args, extra)
   chunk = model.config.rollout.horizon
@@ -153,8 +151,7 @@ def cmd_eval_policy(args, extra) -> int:
   rewards = {spec: reward_from_spec(spec) for spec in args.reward or ["coverage"]}
   result = evaluate_policies(model, policies, rewards, episodes=args.episodes, steps=args.steps,
                              seed=args.seed, scan=args.scan, out=out, videos=args.videos)
-  with open(f"{out}/policy_eval.md") as f:
-    print(f.read())
+  print(policy_report(result))
   print(f"wrote {out}/policy_eval.json, policy_eval.md and videos/")
   return 0
 

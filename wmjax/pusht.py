@@ -176,9 +176,14 @@ class PushPolicy:
 
   def __call__(self, frames, key: jax.Array) -> jax.Array:
     """``frames [B, c, H, W, 3]`` in [-1, 1] (the newest last) -> actions ``[B, chunk, 2]``."""
+    return self.act(frames, key, self.noise)
+
+  def act(self, frames, key: jax.Array, noise) -> jax.Array:
+    """As calling the policy, with ``noise`` a scalar or one level per environment ``[B]``."""
     target = self.target(jnp.asarray(frames)[:, -1])
-    noise = self.noise * WORKSPACE * jax.random.normal(key, (target.shape[0], self.chunk, 2))
-    return jnp.clip(target[:, None] + noise, 0.0, WORKSPACE)
+    scale = jnp.reshape(jnp.asarray(noise, jnp.float32), (-1, 1, 1)) * WORKSPACE
+    jitter = scale * jax.random.normal(key, (target.shape[0], self.chunk, 2))
+    return jnp.clip(target[:, None] + jitter, 0.0, WORKSPACE)
 
 
 def random_initial_states(rng: np.random.Generator, n: int, *, max_offset: float = 90.0,
@@ -255,6 +260,20 @@ class PushTSimulator:
       states.append([*inner.agent.position, *inner.block.position, inner.block.angle])
     return {"coverage": np.array(coverage, np.float32), "state": np.array(states, np.float32)}
 
+  def start(self, states: np.ndarray, context: int
+            ) -> tuple[list[np.ndarray], list[np.ndarray], list[dict]]:
+    """Reset to ``states [B, 5]`` and keep the agent still for ``context - 1`` steps: the
+    ``context`` frames ``[B, S, S, 3]``, the ``context - 1`` still actions ``[B, 2]`` between them
+    and the ``context`` infos, as lists (a world model's shared starting context)."""
+    frame, info = self.reset(states)
+    frames, actions, infos = [frame], [], [info]
+    for _ in range(context - 1):
+      actions.append(stay_actions(info))
+      frame, info = self.step(actions[-1])
+      frames.append(frame)
+      infos.append(info)
+    return frames, actions, infos
+
   def reset_states(self) -> np.ndarray:
     """``[B, 5]`` ``reset_to_state`` vectors of the current poses (velocities are not kept)."""
     states = self._info()["state"].astype(np.float64)
@@ -276,19 +295,14 @@ def simulate_policy(policy: PolicyFn, states: np.ndarray, steps: int, *, image_s
   ``fold_in(key, i)``). Returns ``frames [B, context+steps, S, S, 3]`` uint8, ``actions
   [B, context-1+steps, 2]``, ``coverage [B, context+steps]`` and ``state [B, context+steps, 5]``."""
   sim = PushTSimulator(len(states), image_size)
-  frame, info = sim.reset(states)
-  frames, coverage, state, actions = [frame], [info["coverage"]], [info["state"]], []
+  frames, actions, infos = sim.start(states, context)
 
   def advance(action):
-    nonlocal info
     frame, info = sim.step(action)
     actions.append(np.asarray(action, np.float64))
     frames.append(frame)
-    coverage.append(info["coverage"])
-    state.append(info["state"])
+    infos.append(info)
 
-  for _ in range(context - 1):
-    advance(stay_actions(info))
   chunk, call = np.zeros((len(states), 0, 2)), 0
   for _ in range(steps):
     if chunk.shape[1] == 0:
@@ -298,7 +312,8 @@ def simulate_policy(policy: PolicyFn, states: np.ndarray, steps: int, *, image_s
     advance(chunk[:, 0])
     chunk = chunk[:, 1:]
   return {"frames": np.stack(frames, 1), "actions": np.stack(actions, 1).astype(np.float32),
-          "coverage": np.stack(coverage, 1), "state": np.stack(state, 1)}
+          "coverage": np.stack([i["coverage"] for i in infos], 1),
+          "state": np.stack([i["state"] for i in infos], 1)}
 
 
 @dataclasses.dataclass(frozen=True)

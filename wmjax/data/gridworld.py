@@ -85,9 +85,6 @@ class Gridworld(synthetic.SyntheticBuilder):
   VERSION = tfds.core.Version("1.0.0")
   RELEASE_NOTES = {"1.0.0": "WPE appendix C.1 gridworld with true square positions."}
 
-  def image_size(self) -> int:
-    return self.params.image_size
-
   def action_dim(self) -> int:
     return 2 * self.params.num_squares
 
@@ -95,12 +92,9 @@ class Gridworld(synthetic.SyntheticBuilder):
     return {"square_positions": tfds.features.Tensor(shape=(self.params.num_squares, 2),
                                                      dtype=np.float32)}
 
-  def num_episodes(self, split: str) -> int:
-    return self.params.train_episodes if split == "train" else self.params.test_episodes
-
-  def episodes(self, split, rng):
+  def episodes(self, count, rng):
     g = self.params
-    for _ in range(self.num_episodes(split)):
+    for _ in range(count):
       centres, actions = simulate(g, rng)
       yield synthetic.GeneratedEpisode(
           images=np.stack([render(c, g) for c in centres]), actions=actions,

@@ -77,10 +77,7 @@ def collect(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
     expert = pusht.PushPolicy(chunk=config.chunk)
 
     def policy(frames, key):  # the expert with each episode's own noise level
-      clean = np.asarray(expert(frames, key))
-      scale = noise[:, None, None] * pusht.WORKSPACE
-      return np.clip(clean + scale * np.asarray(jax.random.normal(key, clean.shape)), 0,
-                     pusht.WORKSPACE)
+      return expert.act(frames, key, noise)
 
     run = pusht.simulate_policy(policy, states, config.episode_length - 1,
                                 image_size=config.image_size,
@@ -103,9 +100,6 @@ class PushT(synthetic.SyntheticBuilder):
   VERSION = tfds.core.Version("1.0.0")
   RELEASE_NOTES = {"1.0.0": "Scripted pushes near the goal with per-step coverage and state."}
 
-  def image_size(self) -> int:
-    return self.params.image_size
-
   def action_dim(self) -> int:
     return 2
 
@@ -114,11 +108,8 @@ class PushT(synthetic.SyntheticBuilder):
     return {"state": tfds.features.Tensor(shape=(5,), dtype=np.float32), "coverage": scalar,
             "success": np.bool_, "policy_noise": scalar}
 
-  def num_episodes(self, split: str) -> int:
-    return self.params.train_episodes if split == "train" else self.params.test_episodes
-
-  def episodes(self, split, rng):
-    return collect(self.params, self.num_episodes(split), rng)
+  def episodes(self, count, rng):
+    return collect(self.params, count, rng)
 
 
 def prepare(data_dir: str, config: PushTConfig = PushTConfig()) -> str:

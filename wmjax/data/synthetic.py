@@ -1,7 +1,8 @@
 """A TFDS RLDS builder for datasets wmjax generates itself (gridworld, Push-T), in ArrayRecord.
 
-A subclass names its parameters (a frozen dataclass with a ``name`` property and ``seed``), the
-per-step observation extras and the episode generator; this class writes the standard RLDS layout
+A subclass names its parameters (a frozen dataclass with ``name``, ``seed``, ``image_size``,
+``train_episodes`` and ``test_episodes``), its action dimension, the per-step observation extras
+and the episode generator; this class writes the standard RLDS layout
 (``steps/observation/image`` as PNG, ``steps/action``, ``language_instruction``, ``reward``,
 ``discount``, ``is_first`` / ``is_last`` / ``is_terminal``) with one builder config per parameter
 set, so every variant lives in its own directory and is written once.
@@ -46,26 +47,21 @@ class SyntheticBuilder(tfds.core.GeneratorBasedBuilder):
     self.params = params
     super().__init__(config=tfds.core.BuilderConfig(name=params.name), **kwargs)
 
-  # ---------------------------------------------------------------- subclass hooks
-  def image_size(self) -> int:
-    raise NotImplementedError
-
+  # ---------------------------------------------------------------- abstract: every subclass
   def action_dim(self) -> int:
-    raise NotImplementedError
+    raise NotImplementedError(f"{type(self).__name__} must define action_dim()")
 
   def observation_features(self) -> dict[str, Any]:
     """Per-step ``observation/<name>`` features besides the image."""
-    raise NotImplementedError
+    raise NotImplementedError(f"{type(self).__name__} must define observation_features()")
 
-  def num_episodes(self, split: str) -> int:
-    raise NotImplementedError
-
-  def episodes(self, split: str, rng: np.random.Generator) -> Iterator[GeneratedEpisode]:
-    raise NotImplementedError
+  def episodes(self, count: int, rng: np.random.Generator) -> Iterator[GeneratedEpisode]:
+    """``count`` episodes drawn with ``rng``."""
+    raise NotImplementedError(f"{type(self).__name__} must define episodes()")
 
   # ---------------------------------------------------------------- TFDS
   def _info(self) -> tfds.core.DatasetInfo:
-    size = self.image_size()
+    size = self.params.image_size
     step = {
         "observation": {
             "image": tfds.features.Image(shape=(size, size, 3), encoding_format="png"),
@@ -90,7 +86,8 @@ class SyntheticBuilder(tfds.core.GeneratorBasedBuilder):
 
   def _generate_examples(self, split: str):
     rng = np.random.default_rng(self.params.seed + self.SPLIT_SEED_OFFSETS[split])
-    for index, episode in enumerate(self.episodes(split, rng)):
+    count = self.params.train_episodes if split == "train" else self.params.test_episodes
+    for index, episode in enumerate(self.episodes(count, rng)):
       last = len(episode.images) - 1
       steps = [{
           "observation": {"image": png(episode.images[t]),

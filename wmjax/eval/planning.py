@@ -22,11 +22,10 @@ import numpy as np
 
 from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.stats import ActionStats
-from wmjax.env import frames_to_model
+from wmjax.env import RewardFn, frames_to_model
 from wmjax.rollout import WorldModel, rollout
 
 Proposal = Callable[[Any, jax.Array, int], Any]
-ValueFn = Callable[[np.ndarray, Any], np.ndarray]
 
 
 def policy_proposal(policy: Callable[[Any, jax.Array], Any], noise_std: float = 0.0) -> Proposal:
@@ -81,7 +80,7 @@ class Planner:
   world_model: WorldModel
   params: Any
   proposal: Proposal
-  value: ValueFn
+  value: RewardFn
   num_candidates: int
   horizon: int
   action_stats: ActionStats | None = None

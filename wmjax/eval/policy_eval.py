@@ -30,12 +30,11 @@ from scipy import stats as scipy_stats
 
 from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.stats import ActionStats
-from wmjax.env import WorldModelEnv, frames_to_model
+from wmjax.env import RewardFn, WorldModelEnv, frames_to_model
 from wmjax.eval.metrics import mean_stderr
 from wmjax.rollout import WorldModel, _sample_block, block_key
 
 Policy = Callable[[Any, jax.Array], Any]
-RewardFn = Callable[[np.ndarray, Any], np.ndarray]
 
 
 def env_episodes(env: WorldModelEnv, policy: Policy, initial_frames, steps: int, key: jax.Array,

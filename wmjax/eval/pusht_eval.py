@@ -16,18 +16,17 @@ from __future__ import annotations
 import json
 import math
 import os
-from typing import Any, Callable
+from typing import Any
 
 import jax
 import numpy as np
 
 from wmjax import pusht
 from wmjax.data.pusht import INSTRUCTION
-from wmjax.env import WorldModelEnv
+from wmjax.env import RewardFn, WorldModelEnv
 from wmjax.eval import planning, policy_eval
 from wmjax.eval.video import comparison, stack_rows, write_video
 
-RewardFn = Callable[[np.ndarray, Any], np.ndarray]
 
 
 def initial_states(config, episodes: int, seed: int) -> np.ndarray:
@@ -115,11 +114,12 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
         "table_same_reward": policy_eval.agreement_table(names, same_reward, model_values,
                                                          agreement_same)}
   if out:
-    _write(out, "policy_eval", result, _policy_report(result))
+    _write(out, "policy_eval", result, policy_report(result))
   return result
 
 
-def _policy_report(result: dict) -> str:
+def policy_report(result: dict) -> str:
+  """Markdown: per reward, the agreement tables of :func:`evaluate_policies`."""
   parts = []
   for reward, tables in result["rewards"].items():
     parts += [f"## Reward: {reward}", "", "World model against the simulator's true coverage:", "",
@@ -179,12 +179,7 @@ def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
             codec=model.codec, instruction=INSTRUCTION)
       else:
         planner = SimulatorLookahead(sim, proposal, value_fn, k, h)
-      frame, info = sim.reset(states)
-      frames, known = [frame], []
-      for _ in range(c - 1):  # still steps: the shared context
-        known.append(pusht.stay_actions(info))
-        frame, info = sim.step(known[-1])
-        frames.append(frame)
+      frames, known, _ = sim.start(states, c)
       coverage = []
 
       def step_fn(action, sim=sim, coverage=coverage):
