@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from wmjax.diffusion import (FlowMatching, GaussianDiffusion, SamplerConfig, classifier_free_guidance,
-                             ddim_step, diffusion_loss, make_betas, sample_window,
-                             scheduling_matrix, training_levels)
+                             context_inputs, ddim_step, diffusion_loss, make_betas, sample_window,
+                             scheduling_matrix, training_levels, window_denoiser)
 from wmjax.diffusion import schedules
 
 SHAPE = (2, 5, 4, 4, 3)  # [B, T, H, W, C]
@@ -153,10 +153,11 @@ def test_sampler_with_perfect_denoiser_recovers_x0(name, matrix):
   k1, k2, k3 = jax.random.split(jax.random.key(3), 3)
   c, h = 2, 3
   x0 = jax.random.normal(k1, (2, c + h, 4, 4, 3))
-  context_in = process.context_input(x0[:, :c], process.level(context_level))
+  context_in, context_levels = context_inputs(process, config, x0[:, :c])
   denoise = _perfect_denoiser(process, jnp.concatenate([context_in, x0[:, c:]], axis=1))
   noise = jax.random.normal(k2, (2, h, 4, 4, 3))
-  out = sample_window(denoise, process, config, x0[:, :c], noise, k3)
+  out = sample_window(window_denoiser(denoise, context_in, context_levels), process, config,
+                      noise, k3)
   np.testing.assert_allclose(out, x0[:, c:], atol=2e-4)
 
 
@@ -166,9 +167,10 @@ def test_clip_denoised_bounds_the_samples(name):
   config = SamplerConfig(sampler=sampler, num_steps=5, eta=eta, clip_denoised=True,
                          context_level=0.01 if sampler == "euler" else 15)
   x0 = jnp.clip(jax.random.normal(jax.random.key(0), (2, 4, 4, 4, 3)), -1, 1)
-  exact = sample_window(_perfect_denoiser(process, x0),
-                        process, config, x0[:, :1], jnp.zeros((2, 3, 4, 4, 3)), jax.random.key(1))
-  wild = sample_window(lambda x, levels: 50.0 * jnp.ones_like(x), process, config, x0[:, :1],
+  context = context_inputs(process, config, x0[:, :1])
+  exact = sample_window(window_denoiser(_perfect_denoiser(process, x0), *context), process, config,
+                        jnp.zeros((2, 3, 4, 4, 3)), jax.random.key(1))
+  wild = sample_window(lambda x, levels: 50.0 * jnp.ones_like(x), process, config,
                        jax.random.normal(jax.random.key(2), (2, 3, 4, 4, 3)), jax.random.key(1))
   assert float(jnp.abs(wild).max()) <= 1.0 + 1e-5
   np.testing.assert_allclose(exact, x0[:, 1:], atol=2e-4)

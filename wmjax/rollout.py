@@ -23,7 +23,8 @@ import ml_collections
 import numpy as np
 
 from wmjax.diffusion import objectives
-from wmjax.diffusion.sampling import SamplerConfig, classifier_free_guidance, sample_window
+from wmjax.diffusion.sampling import (DenoiseFn, SamplerConfig, classifier_free_guidance,
+                                      context_inputs, sample_window, window_denoiser)
 from wmjax.nn.dit import STDiT
 
 Params = Any
@@ -36,6 +37,12 @@ class WorldModel:
   network: STDiT
   process: objectives.Process
   sampler: SamplerConfig
+
+  def __post_init__(self):
+    if self.sampler.kv_cache and not self.network.causal_temporal:
+      raise ValueError("sampling.kv_cache=True needs model.causal_temporal=True: with "
+                       "bidirectional temporal attention the context frames attend to the new "
+                       "frames, so their keys and values change at every sampling step")
 
   @classmethod
   def from_config(cls, config: ml_collections.ConfigDict) -> "WorldModel":
@@ -57,18 +64,59 @@ class WorldModel:
     actions = jnp.zeros((1, n - 1, self.network.action_dim), jnp.float32)
     return self.network.init(rng, x, jnp.zeros((1, n), jnp.float32), actions)
 
+  # Classifier-free guidance runs the network on the batch twice, conditional then null.
+
+  @property
+  def guided(self) -> bool:
+    return self.sampler.guidance_scale != 1.0
+
+  def _twice(self, x: jax.Array) -> jax.Array:
+    return jnp.concatenate([x, x], axis=0) if self.guided else x
+
+  def _conditioning(self, actions: jax.Array, action_mask: jax.Array):
+    """``(actions, action_mask, drop_actions)`` of the network's batch."""
+    if not self.guided:
+      return actions, action_mask, None
+    b = actions.shape[0]
+    drop = jnp.concatenate([jnp.zeros((b,), bool), jnp.ones((b,), bool)])
+    return self._twice(actions), self._twice(action_mask), drop
+
+  def _guide(self, out: jax.Array) -> jax.Array:
+    if not self.guided:
+      return out
+    b = out.shape[0] // 2
+    return classifier_free_guidance(out[:b], out[b:], self.sampler.guidance_scale)
+
   def denoise(self, params: Params, x: jax.Array, levels: jax.Array, actions: jax.Array,
               action_mask: jax.Array) -> jax.Array:
     """Network output for the window ``x [B, T, ...]`` at process levels ``[B, T]``, with guidance."""
     t = self.process.model_time(levels)
-    scale = self.sampler.guidance_scale
-    if scale == 1.0:
-      return self.network.apply(params, x, t, actions, action_mask)
-    b = x.shape[0]
-    twice = lambda a: jnp.concatenate([a, a], axis=0)
-    drop = jnp.concatenate([jnp.zeros((b,), bool), jnp.ones((b,), bool)])
-    out = self.network.apply(params, twice(x), twice(t), twice(actions), twice(action_mask), drop)
-    return classifier_free_guidance(out[:b], out[b:], scale)
+    out = self.network.apply(params, self._twice(x), self._twice(t),
+                             *self._conditioning(actions, action_mask))
+    return self._guide(out)
+
+  def new_frame_denoiser(self, params: Params, context: jax.Array, actions: jax.Array,
+                         action_mask: jax.Array) -> DenoiseFn:
+    """What the sampler calls at every step: ``(x [B, h, ...], levels [B, h]) -> out`` for the
+    ``h`` frames after the clean ``context [B, c, ...]``, under the window's ``actions
+    [B, c+h-1, A]`` and ``action_mask [B, c+h-1]``. With ``sampler.kv_cache`` the context goes
+    through the network once, here; otherwise every step runs the whole window."""
+    context_in, context_levels = context_inputs(self.process, self.sampler, context)
+    if not self.sampler.kv_cache:
+      return window_denoiser(lambda x, levels: self.denoise(params, x, levels, actions, action_mask),
+                             context_in, context_levels)
+    conditioning = self._conditioning(actions, action_mask)
+    cache = self.network.apply(params, self._twice(context_in),
+                               self._twice(self.process.model_time(context_levels)), *conditioning,
+                               method="encode_context")
+
+    def denoise(x, levels):
+      out = self.network.apply(params, cache, self._twice(x),
+                               self._twice(self.process.model_time(levels)), *conditioning,
+                               method="extend")
+      return self._guide(out)
+
+    return denoise
 
 
 # ----------------------------------------------------------------------------- validation
@@ -129,12 +177,9 @@ def _sample_block(world_model: WorldModel, params: Params, context: jax.Array,
   h = window_actions.shape[1] - c + 1
   noise_key, step_key = jax.random.split(rng)
   noise = jax.random.normal(noise_key, (context.shape[0], h) + context.shape[2:], jnp.float32)
-
-  def denoise(x, levels):
-    return world_model.denoise(params, x, levels, window_actions, window_mask)
-
-  return sample_window(denoise, world_model.process, world_model.sampler,
-                       context.astype(jnp.float32), noise, step_key)
+  denoise = world_model.new_frame_denoiser(params, context.astype(jnp.float32), window_actions,
+                                           window_mask)
+  return sample_window(denoise, world_model.process, world_model.sampler, noise, step_key)
 
 
 _sample_block_jit = jax.jit(_sample_block, static_argnums=0)

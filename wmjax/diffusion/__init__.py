@@ -2,12 +2,14 @@
 
 from wmjax.diffusion.objectives import (FlowMatching, GaussianDiffusion, Process, diffusion_loss,
                                         make_process, training_levels)
-from wmjax.diffusion.sampling import (SamplerConfig, classifier_free_guidance, ddim_step,
-                                      euler_step, sample_window, sampler_step, scheduling_matrix)
+from wmjax.diffusion.sampling import (SamplerConfig, classifier_free_guidance, context_inputs,
+                                      ddim_step, euler_step, sample_window, sampler_step,
+                                      scheduling_matrix, window_denoiser)
 from wmjax.diffusion.schedules import alphas_cumprod, make_betas
 
 __all__ = [
     "FlowMatching", "GaussianDiffusion", "Process", "SamplerConfig", "alphas_cumprod",
-    "classifier_free_guidance", "ddim_step", "diffusion_loss", "euler_step", "make_betas",
-    "make_process", "sample_window", "sampler_step", "scheduling_matrix", "training_levels",
+    "classifier_free_guidance", "context_inputs", "ddim_step", "diffusion_loss", "euler_step",
+    "make_betas", "make_process", "sample_window", "sampler_step", "scheduling_matrix",
+    "training_levels", "window_denoiser",
 ]

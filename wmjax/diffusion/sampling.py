@@ -49,7 +49,9 @@ class SamplerConfig:
   ``context_level`` is the stabilisation level at which clean context frames are shown
   (a DDPM level, e.g. 15 of 1000, or a flow time such as 0.01). ``guidance_scale`` w gives
   ``out = out_null + w (out_cond - out_null)``; 1 disables guidance. ``clip_denoised`` clips the
-  x0 estimate to [-1, 1] at every step (pixel-space models).
+  x0 estimate to [-1, 1] at every step (pixel-space models). ``kv_cache`` runs the context
+  frames through the network once per window and keeps their temporal keys and values, so each
+  step computes only the new frames (exact, and only allowed, with causal temporal attention).
   """
 
   sampler: str = "ddim"
@@ -59,6 +61,7 @@ class SamplerConfig:
   context_level: float = 15.0
   guidance_scale: float = 1.0
   clip_denoised: bool = False
+  kv_cache: bool = False
 
   def __post_init__(self):
     if self.sampler not in SAMPLERS:
@@ -134,30 +137,49 @@ def classifier_free_guidance(out_cond: jax.Array, out_null: jax.Array, scale: fl
 DenoiseFn = Callable[[jax.Array, jax.Array], jax.Array]
 
 
-def sample_window(denoise_fn: DenoiseFn, process: Process, config: SamplerConfig,
-                  context: jax.Array, noise: jax.Array, key: jax.Array) -> jax.Array:
-  """Denoise ``h`` new frames after ``c`` clean context frames; one ``lax.scan`` over the rows.
-
-  ``denoise_fn(x [B, c+h, ...], levels [B, c+h]) -> out [B, c+h, ...]`` runs the network on the
-  whole window. Context frames are shown at ``config.context_level`` (scaled, no noise) and stay
-  fixed; ``noise [B, h, ...]`` is the starting point of the new frames. Returns ``[B, h, ...]``.
-  """
+def context_inputs(process: Process, config: SamplerConfig, context: jax.Array
+                   ) -> tuple[jax.Array, jax.Array]:
+  """Clean context frames ``[B, c, ...]`` as the network sees them during sampling: at
+  ``config.context_level`` (scaled, no noise). Returns ``(inputs [B, c, ...], levels [B, c])``."""
   b, c = context.shape[:2]
-  h = noise.shape[1]
+  level = process.level(config.context_level)
+  return process.context_input(context, level), jnp.full((b, c), level)
+
+
+def window_denoiser(denoise_window: DenoiseFn, context_in: jax.Array,
+                    context_levels: jax.Array) -> DenoiseFn:
+  """A new-frame denoiser from one over whole windows: the fixed context is put in front of the
+  new frames ``[B, h, ...]`` and the output for the new frames is returned."""
+  c = context_in.shape[1]
+
+  def denoise(x_new, levels_new):
+    window = jnp.concatenate([context_in.astype(x_new.dtype), x_new], axis=1)
+    levels = jnp.concatenate([context_levels.astype(levels_new.dtype), levels_new], axis=1)
+    return denoise_window(window, levels)[:, c:]
+
+  return denoise
+
+
+def sample_window(denoise_fn: DenoiseFn, process: Process, config: SamplerConfig,
+                  noise: jax.Array, key: jax.Array) -> jax.Array:
+  """Denoise ``h`` new frames, starting at ``noise [B, h, ...]``; one ``lax.scan`` over the rows
+  of the scheduling matrix.
+
+  ``denoise_fn(x [B, h, ...], levels [B, h]) -> out [B, h, ...]`` gives the network output for the
+  new frames; it holds the clean context (:func:`window_denoiser`, or a temporal KV cache).
+  Returns ``[B, h, ...]``.
+  """
+  b, h = noise.shape[:2]
   matrix = scheduling_matrix(config.matrix, config.num_steps, h)
   levels = process.sampling_levels(config.num_steps)[matrix]  # [R, h]
-  context_level = process.level(config.context_level)
-  context_in = process.context_input(context, context_level).astype(noise.dtype)
-  context_levels = jnp.full((b, c), context_level, levels.dtype)
 
-  def body(x_new, row):
+  def body(x, row):
     level_from, level_to, step_key = row
     level_from = jnp.broadcast_to(level_from, (b, h))
     level_to = jnp.broadcast_to(level_to, (b, h))
-    window = jnp.concatenate([context_in, x_new], axis=1)
-    out = denoise_fn(window, jnp.concatenate([context_levels, level_from], axis=1))[:, c:]
-    return sampler_step(process, config, x_new, level_from, level_to, out, step_key), None
+    out = denoise_fn(x, level_from)
+    return sampler_step(process, config, x, level_from, level_to, out, step_key), None
 
   keys = jax.random.split(key, len(levels) - 1)
-  x_new, _ = jax.lax.scan(body, noise, (levels[:-1], levels[1:], keys))
-  return x_new
+  x, _ = jax.lax.scan(body, noise, (levels[:-1], levels[1:], keys))
+  return x

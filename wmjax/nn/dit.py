@@ -18,6 +18,12 @@ Conditioning modes (``cond``):
 * ``video``     IRASim Video-Ada: one embedding of the whole flattened trajectory (zero-padded to
                 ``num_frames - 1`` actions) is added to ``temb(t_j)`` for every block.
 * ``per_frame`` WPE / Oasis: ``temb(t_j) + aemb(a_{j-1})`` in every block.
+
+Temporal KV cache (rollouts): with causal temporal attention the first ``c`` frames of a window
+never see the later ones, so their activations do not depend on the frames being denoised.
+:meth:`STDiT.encode_context` runs them once and keeps every layer's temporal keys and values;
+:meth:`STDiT.extend` then runs only the window's last ``n - c`` frames against that cache and
+gives what :meth:`STDiT.__call__` gives for them on the whole window.
 """
 
 from __future__ import annotations
@@ -27,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmjax.nn import layers
+from wmjax.nn import attention, layers
 from wmjax.nn.layers import logical
 
 COND_MODES = ("frame", "video", "per_frame")
@@ -42,7 +48,12 @@ TEMPORAL_POSITIONS = ("sincos", "rope")
 
 
 class LayerStack(nn.Module):
-  """``num_layers`` spatial+temporal layers, scanned (stacked params, fast compiles) or unrolled."""
+  """``num_layers`` spatial+temporal layers, scanned (stacked params, fast compiles) or unrolled.
+
+  ``x [B, T, P, D]`` -> ``(x', kv)``. ``cache`` holds every layer's temporal keys and values of
+  ``Tc`` earlier frames (``[layers, B*P, Tc, H, d]`` each); with ``return_kv`` ``kv`` is the same
+  for ``x``'s frames, else None.
+  """
 
   num_layers: int
   num_heads: int
@@ -55,22 +66,27 @@ class LayerStack(nn.Module):
   remat: str
 
   @nn.compact
-  def __call__(self, x, spatial_cond, temporal_cond):
+  def __call__(self, x, spatial_cond, temporal_cond, cache=None, return_kv: bool = False):
     layer_cls = layers.STLayer
     if self.remat != "none":
       layer_cls = nn.remat(layer_cls, prevent_cse=not self.scan,
                            policy=REMAT_POLICIES[self.remat])
     kwargs = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio, causal=self.causal,
-                  rope=self.rope, attention_impl=self.attention_impl, dtype=self.dtype)
+                  rope=self.rope, attention_impl=self.attention_impl, dtype=self.dtype,
+                  return_kv=return_kv)
+    inputs = (x, spatial_cond, temporal_cond) + (() if cache is None else (cache,))
     if self.scan:
+      in_axes = (nn.broadcast, nn.broadcast) + (() if cache is None else (0,))
       stack = nn.scan(layer_cls, variable_axes={"params": 0}, split_rngs={"params": True},
-                      in_axes=(nn.broadcast, nn.broadcast), length=self.num_layers,
+                      in_axes=in_axes, length=self.num_layers,
                       metadata_params={nn.PARTITION_NAME: "layers"})
-      x, _ = stack(**kwargs, name="layers")(x, spatial_cond, temporal_cond)
-      return x
+      return stack(**kwargs, name="layers")(*inputs)
+    kvs = []
     for i in range(self.num_layers):
-      x, _ = layer_cls(**kwargs, name=f"layer_{i}")(x, spatial_cond, temporal_cond)
-    return x
+      layer_cache = None if cache is None else jax.tree.map(lambda a: a[i], cache)
+      x, kv = layer_cls(**kwargs, name=f"layer_{i}")(x, spatial_cond, temporal_cond, layer_cache)
+      kvs.append(kv)
+    return x, (jax.tree.map(lambda *a: jnp.stack(a), *kvs) if return_kv else None)
 
 
 class STDiT(nn.Module):
@@ -90,7 +106,7 @@ class STDiT(nn.Module):
   action_dropout: float = 0.1
   causal_temporal: bool = False
   temporal_pos: str = "sincos"
-  attention_impl: str | None = None
+  attention_impl: str | None = "xla"  # a backend of wmjax.nn.attention (None: xla)
   dtype: str = "float32"  # compute dtype; parameters are always float32
   scan_layers: bool = True
   remat: str = "none"  # a key of REMAT_POLICIES
@@ -107,6 +123,7 @@ class STDiT(nn.Module):
     if self.hidden_size % self.num_heads:
       raise ValueError(f"hidden_size {self.hidden_size} is not divisible by num_heads {self.num_heads}")
     dtype = jnp.dtype(self.dtype)
+    attention.check_backend(self.attention_impl, dtype)
     d = self.hidden_size
     self.patch_embed = layers.PatchEmbed(self.patch_size, d, dtype=dtype)
     self.time_embed = layers.TimestepEmbedder(d, dtype=dtype)
@@ -152,16 +169,34 @@ class STDiT(nn.Module):
 
   # ------------------------------------------------------------------------- conditioning
 
-  def conditioning(self, t, actions, action_mask=None, drop_actions=None):
+  def check_frames(self, x, t, actions, first: int, action_mask=None, drop_actions=None) -> None:
+    """Like :meth:`check_inputs` for frames ``first .. first+m-1`` (``x [B, m, H, W, C]``,
+    ``t [B, m]``) of a window of ``n = actions.shape[1] + 1`` frames."""
+    if x.ndim != 5 or actions.ndim != 3:
+      raise ValueError(f"frames must be [B, m, H, W, C] and actions [B, n-1, A], got shapes "
+                       f"{tuple(x.shape)} and {tuple(actions.shape)}")
+    b, m = x.shape[:2]
+    n = actions.shape[1] + 1
+    if not 0 < first + m <= n:
+      raise ValueError(f"frames {first}..{first + m - 1} do not lie in the window of {n} frames "
+                       f"that {n - 1} actions describe")
+    if tuple(t.shape) != (b, m):
+      raise ValueError(f"noise levels must be [B, m] = {(b, m)}, got {tuple(t.shape)}")
+    self.check_inputs(jax.ShapeDtypeStruct((b, n) + tuple(x.shape[2:]), x.dtype),
+                      jax.ShapeDtypeStruct((b, n), t.dtype), actions, action_mask, drop_actions)
+
+  def conditioning(self, t, actions, action_mask=None, drop_actions=None, first: int = 0):
     """Per-frame conditioning vectors for the spatial blocks, temporal blocks and final layer.
 
-    ``t [B, T]``, ``actions [B, T-1, A]``, ``action_mask [B, T-1]`` (False -> null embedding),
-    ``drop_actions [B]`` (True -> every frame of the sample uses the null embedding).
-    Returns three ``[B, T, D]`` arrays.
+    ``t [B, m]`` are the model times of frames ``first .. first+m-1`` of a window of
+    ``n = actions.shape[1] + 1`` frames; ``actions [B, n-1, A]``, ``action_mask [B, n-1]`` (False
+    -> null embedding), ``drop_actions [B]`` (True -> every frame of the sample uses the null
+    embedding). Returns three ``[B, m, D]`` arrays.
     """
-    b, n = t.shape
+    b, m = t.shape
+    n = actions.shape[1] + 1
     dtype = jnp.dtype(self.dtype)
-    temb = self.time_embed(t)  # [B, T, D]
+    temb = self.time_embed(t)  # [B, m, D]
     null = self.null_action.astype(dtype)
     drop = jnp.zeros((b,), bool) if drop_actions is None else drop_actions
     if action_mask is None:
@@ -169,10 +204,11 @@ class STDiT(nn.Module):
 
     frame_emb = None
     if self.cond in ("frame", "per_frame"):
-      emb = self.action_embed(actions.astype(dtype))  # [B, T-1, D]
+      emb = self.action_embed(actions.astype(dtype))  # [B, n-1, D]
       keep = action_mask & ~drop[:, None]
       emb = jnp.where(keep[..., None], emb, null)
       frame_emb = jnp.concatenate([jnp.broadcast_to(null, (b, 1, emb.shape[-1])), emb], axis=1)
+      frame_emb = frame_emb[:, first:first + m]
 
     traj_emb = None
     if self.uses_trajectory:
@@ -199,21 +235,68 @@ class STDiT(nn.Module):
     sample with that probability.
     """
     self.check_inputs(x, t, actions, action_mask, drop_actions)
-    b, n, h, w, _ = x.shape
-    dtype = jnp.dtype(self.dtype)
     if train and self.action_dropout > 0:
-      dropped = jax.random.bernoulli(self.make_rng("dropout"), self.action_dropout, (b,))
+      dropped = jax.random.bernoulli(self.make_rng("dropout"), self.action_dropout, (x.shape[0],))
       drop_actions = dropped if drop_actions is None else drop_actions | dropped
-    spatial_cond, temporal_cond, final_cond = self.conditioning(t, actions, action_mask,
-                                                                drop_actions)
+    out, _ = self._forward(x, t, actions, action_mask, drop_actions)
+    return out
 
+  def encode_context(self, context, t, actions, action_mask=None, drop_actions=None):
+    """The temporal KV cache of a window's first ``c`` frames, for :meth:`extend`.
+
+    ``context [B, c, H, W, C]`` and their model times ``t [B, c]``; ``actions [B, n-1, A]`` (and
+    ``action_mask``, ``drop_actions``) are those of the whole ``n``-frame window, ``c < n``.
+    Returns ``(keys, values)``, each ``[layers, B*P, c, heads, head_dim]`` in the compute dtype.
+    Needs ``causal_temporal``: otherwise the context frames attend to the later ones.
+    """
+    if not self.causal_temporal:
+      raise ValueError("a temporal KV cache needs model.causal_temporal=True: with bidirectional "
+                       "temporal attention the context frames attend to the frames after them")
+    self.check_frames(context, t, actions, 0, action_mask, drop_actions)
+    if context.shape[1] >= actions.shape[1] + 1:
+      raise ValueError(f"the context ({context.shape[1]} frames) must leave frames to generate in "
+                       f"the window of {actions.shape[1] + 1}")
+    _, cache = self._forward(context, t, actions, action_mask, drop_actions, return_kv=True)
+    return cache
+
+  def extend(self, cache, x, t, actions, action_mask=None, drop_actions=None):
+    """Output for the last ``h`` frames of a window whose first ``c`` are in ``cache``.
+
+    ``cache`` from :meth:`encode_context` with the same actions, ``x [B, h, H, W, C]``,
+    ``t [B, h]``, ``actions [B, c+h-1, A]`` -> ``[B, h, H, W, C]`` float32: what :meth:`__call__`
+    gives for these frames on the whole window.
+    """
+    first = cache[0].shape[2]
+    if x.shape[1] + first != actions.shape[1] + 1:
+      raise ValueError(f"a cache of {first} frames and {x.shape[1]} new frames make "
+                       f"{first + x.shape[1]}, but the actions describe a window of "
+                       f"{actions.shape[1] + 1}")
+    self.check_frames(x, t, actions, first, action_mask, drop_actions)
+    b, _, h, w, _ = x.shape
+    expected = (self.depth // 2, b * (h // self.patch_size) * (w // self.patch_size), first,
+                self.num_heads, self.hidden_size // self.num_heads)
+    if any(tuple(a.shape) != expected for a in cache):
+      raise ValueError(f"cache keys and values must be [layers, B*P, c, heads, head_dim] = "
+                       f"{expected}, got {[tuple(a.shape) for a in cache]}")
+    out, _ = self._forward(x, t, actions, action_mask, drop_actions, first=first, cache=cache)
+    return out
+
+  def _forward(self, x, t, actions, action_mask, drop_actions, first: int = 0, cache=None,
+               return_kv: bool = False):
+    """Frames ``first ..`` of the window -> (output or None when ``return_kv``, kv or None)."""
+    b, m, h, w, _ = x.shape
+    dtype = jnp.dtype(self.dtype)
+    spatial_cond, temporal_cond, final_cond = self.conditioning(t, actions, action_mask,
+                                                                drop_actions, first)
     gh, gw = h // self.patch_size, w // self.patch_size
-    tokens = self.patch_embed(x.astype(dtype))  # [B, T, P, D]
+    tokens = self.patch_embed(x.astype(dtype))  # [B, m, P, D]
     pos = layers.sincos_2d(self.hidden_size, gh, gw)[None, None]
     if self.temporal_pos == "sincos":
-      pos = pos + layers.sincos_1d(self.hidden_size, np.arange(n))[None, :, None]
+      pos = pos + layers.sincos_1d(self.hidden_size, np.arange(first, first + m))[None, :, None]
     tokens = tokens + pos.astype(dtype)
 
-    tokens = self.blocks(tokens, spatial_cond, temporal_cond)
-    out = self.final_layer(tokens, final_cond)  # [B, T, P, p*p*C]
-    return layers.unpatchify(out, gh, gw, self.patch_size).astype(jnp.float32)
+    tokens, kv = self.blocks(tokens, spatial_cond, temporal_cond, cache, return_kv)
+    if return_kv:
+      return None, kv
+    out = self.final_layer(tokens, final_cond)  # [B, m, P, p*p*C]
+    return layers.unpatchify(out, gh, gw, self.patch_size).astype(jnp.float32), None

@@ -25,6 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wmjax.nn.attention import attend
+
 Dtype = Any
 
 _xavier = nn.initializers.xavier_uniform()
@@ -181,21 +183,24 @@ class Mlp(nn.Module):
 
 
 class Attention(nn.Module):
-  """Multi-head self-attention over axis 1 of ``x [N, L, D]`` through ``jax.nn.dot_product_attention``.
+  """Multi-head self-attention over axis 1 of ``x [N, L, D]`` (:func:`wmjax.nn.attention.attend`).
 
   ``causal`` masks future positions; ``rope`` rotates queries and keys by their position.
-  ``implementation`` is passed to ``jax.nn.dot_product_attention`` (None lets JAX choose, 'xla',
-  'cudnn').
+  ``cache = (k, v)``, each ``[N, Lc, H, d]``, holds the keys and values of ``Lc`` earlier positions:
+  ``x`` is then at positions ``Lc .. Lc+L-1`` and attends to the cache as well. Returns the output
+  ``[N, L, D]`` and ``x``'s own keys and values (``[N, L, H, d]`` each, RoPE applied), which a
+  later call can take as its cache.
   """
 
   num_heads: int
   causal: bool = False
   rope: bool = False
-  implementation: str | None = None
+  implementation: str | None = "xla"
   dtype: Dtype = jnp.float32
 
   @nn.compact
-  def __call__(self, x: jax.Array) -> jax.Array:
+  def __call__(self, x: jax.Array, cache: tuple[jax.Array, jax.Array] | None = None
+               ) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
     d = x.shape[-1]
     head_dim = d // self.num_heads
 
@@ -205,14 +210,18 @@ class Attention(nn.Module):
                              bias_init=logical(_zeros, "heads", "kv"), name=name)(x)
 
     q, k, v = project("query"), project("key"), project("value")  # [N, L, H, d]
+    offset = 0 if cache is None else cache[0].shape[1]
     if self.rope:
-      positions = jnp.arange(x.shape[1])
+      positions = offset + jnp.arange(x.shape[1])
       q, k = rope(q, positions), rope(k, positions)
-    out = jax.nn.dot_product_attention(q, k, v, is_causal=self.causal,
-                                       implementation=self.implementation)
-    return nn.DenseGeneral(d, axis=(-2, -1), dtype=self.dtype,
-                           kernel_init=logical(_xavier, "heads", "kv", "embed"),
-                           bias_init=logical(_zeros, "embed"), name="out")(out)
+    keys, values = (k, v) if cache is None else (
+        jnp.concatenate([cache[0].astype(k.dtype), k], axis=1),
+        jnp.concatenate([cache[1].astype(v.dtype), v], axis=1))
+    out = attend(q, keys, values, causal=self.causal, backend=self.implementation)
+    out = nn.DenseGeneral(d, axis=(-2, -1), dtype=self.dtype,
+                          kernel_init=logical(_xavier, "heads", "kv", "embed"),
+                          bias_init=logical(_zeros, "embed"), name="out")(out)
+    return out, (k, v)
 
 
 def layer_norm(x: jax.Array) -> jax.Array:
@@ -246,8 +255,11 @@ class STBlock(nn.Module):
   """DiT adaLN-Zero block attending over one axis of the ``[B, T, P, D]`` token grid.
 
   ``axis='spatial'``: the P patches of each frame attend to each other.
-  ``axis='temporal'``: each patch position attends across the T frames (optionally causal).
+  ``axis='temporal'``: each patch position attends across the T frames (optionally causal), and
+  across the ``Tc`` earlier frames of ``cache`` (keys, values ``[B*P, Tc, H, d]``) when given.
   ``cond [B, T, D]`` is the per-frame conditioning vector; it modulates every token of its frame.
+  Returns ``x' [B, T, P, D]`` and, for the temporal axis, the keys and values of ``x``'s frames
+  (``[B*P, T, H, d]`` each; None for the spatial axis).
   """
 
   axis: str
@@ -255,11 +267,11 @@ class STBlock(nn.Module):
   mlp_ratio: int = 4
   causal: bool = False
   rope: bool = False
-  attention_impl: str | None = None
+  attention_impl: str | None = "xla"
   dtype: Dtype = jnp.float32
 
   @nn.compact
-  def __call__(self, x: jax.Array, cond: jax.Array) -> jax.Array:
+  def __call__(self, x: jax.Array, cond: jax.Array, cache=None):
     b, t, p, d = x.shape
     shift_a, scale_a, gate_a, shift_m, scale_m, gate_m = (
         m[:, :, None, :] for m in Modulation(6, dtype=self.dtype, name="modulation")(cond))
@@ -267,40 +279,45 @@ class STBlock(nn.Module):
                           implementation=self.attention_impl, dtype=self.dtype, name="attn")
     h = modulate(layer_norm(x), shift_a, scale_a)
     if self.axis == "spatial":
-      h = attention(h.reshape(b * t, p, d)).reshape(b, t, p, d)
+      if cache is not None:
+        raise ValueError("spatial attention takes no cache: frames attend within themselves")
+      h, kv = attention(h.reshape(b * t, p, d))[0].reshape(b, t, p, d), None
     elif self.axis == "temporal":
-      h = h.transpose(0, 2, 1, 3).reshape(b * p, t, d)
-      h = attention(h).reshape(b, p, t, d).transpose(0, 2, 1, 3)
+      h, kv = attention(h.transpose(0, 2, 1, 3).reshape(b * p, t, d), cache)
+      h = h.reshape(b, p, t, d).transpose(0, 2, 1, 3)
     else:
       raise ValueError(f"axis must be 'spatial' or 'temporal', got {self.axis!r}")
     x = x + gate_a * h
     h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, name="mlp")(modulate(layer_norm(x), shift_m,
                                                                            scale_m))
-    return x + gate_m * h
+    return x + gate_m * h, kv
 
 
 class STLayer(nn.Module):
   """One spatial block followed by one temporal block (the unit that is stacked / scanned).
 
-  ``x [B, T, P, D]``, ``spatial_cond`` and ``temporal_cond`` ``[B, T, D]`` -> ``(x', None)`` with
-  ``x' [B, T, P, D]``; the ``(carry, output)`` pair is what ``nn.scan`` expects.
+  ``x [B, T, P, D]``, ``spatial_cond`` and ``temporal_cond`` ``[B, T, D]``, optional temporal
+  ``cache`` (see :class:`STBlock`) -> ``(x', kv)`` with ``x' [B, T, P, D]`` and ``kv`` the temporal
+  keys and values of ``x``'s frames when ``return_kv`` (else None); the ``(carry, output)`` pair is
+  what ``nn.scan`` expects.
   """
 
   num_heads: int
   mlp_ratio: int = 4
   causal: bool = False
   rope: bool = False
-  attention_impl: str | None = None
+  attention_impl: str | None = "xla"
   dtype: Dtype = jnp.float32
+  return_kv: bool = False
 
   @nn.compact
-  def __call__(self, x, spatial_cond, temporal_cond):
+  def __call__(self, x, spatial_cond, temporal_cond, cache=None):
     common = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio,
                   attention_impl=self.attention_impl, dtype=self.dtype)
-    x = STBlock("spatial", **common, name="spatial")(x, spatial_cond)
-    x = STBlock("temporal", causal=self.causal, rope=self.rope, **common,
-                name="temporal")(x, temporal_cond)
-    return x, None
+    x, _ = STBlock("spatial", **common, name="spatial")(x, spatial_cond)
+    x, kv = STBlock("temporal", causal=self.causal, rope=self.rope, **common,
+                    name="temporal")(x, temporal_cond, cache)
+    return x, kv if self.return_kv else None
 
 
 class FinalLayer(nn.Module):
