@@ -187,3 +187,54 @@ def test_world_model_from_config_rejects_mismatched_sampler():
   config = tiny_config("irasim.py:S", "sampling.sampler='euler'")
   with pytest.raises(ValueError, match="does not fit"):
     WorldModel.from_config(config)
+
+
+# --------------------------------------------------------------------------- temporal KV cache
+
+
+def _cached_output(model, params, x, t, a, c, mask=None, drop=None):
+  cache = model.apply(params, x[:, :c], t[:, :c], a, mask, drop, method="encode_context")
+  return model.apply(params, cache, x[:, c:], t[:, c:], a, mask, drop, method="extend")
+
+
+@pytest.mark.parametrize("cond,fields,c", [
+    ("frame", {}, 1),
+    ("frame", dict(trajectory_in_temporal=True, temporal_pos="rope"), 4),
+    ("video", dict(scan_layers=False), 2),
+    ("per_frame", dict(temporal_pos="rope", scan_layers=False), 1),
+    ("per_frame", {}, 3),
+])
+def test_extend_after_the_cached_context_equals_the_whole_window(cond, fields, c):
+  model, params, (x, t, a) = _model(cond, **fields)
+  mask = jnp.asarray([[True] * 5, [True, False, True, True, False]])
+  drop = jnp.asarray([False, True])
+  whole = model.apply(params, x, t, a, mask, drop)
+  got = _cached_output(model, params, x, t, a, c, mask, drop)
+  assert got.shape == x[:, c:].shape
+  np.testing.assert_allclose(got, whole[:, c:], rtol=1e-5, atol=1e-5)
+  # The cached context really is the context: other context frames give another output.
+  other = _cached_output(model, params, x.at[:, :c].multiply(-1.0), t, a, c, mask, drop)
+  assert float(jnp.abs(other - got).max()) > 1e-3
+
+
+def test_kv_cache_needs_causal_temporal_attention():
+  model, params, (x, t, a) = _model("frame", causal_temporal=False)
+  with pytest.raises(ValueError, match="needs model.causal_temporal=True"):
+    model.apply(params, x[:, :2], t[:, :2], a, method="encode_context")
+  config = tiny_config("irasim.py:S", "sampling.kv_cache=True")
+  with pytest.raises(ValueError, match="sampling.kv_cache=True needs model.causal_temporal=True"):
+    WorldModel.from_config(config)
+
+
+def test_kv_cache_inputs_are_checked():
+  model, params, (x, t, a) = _model("frame")
+  with pytest.raises(ValueError, match="must leave frames to generate in the window of 6"):
+    model.apply(params, x, t, a, method="encode_context")
+  cache = model.apply(params, x[:, :2], t[:, :2], a, method="encode_context")
+  assert [k.shape for k in cache] == [(1, 2 * 16, 2, 2, 16)] * 2  # [layers, B*P, c, H, d]
+  with pytest.raises(ValueError, match=r"a cache of 2 frames and 3 new frames make 5, but the "
+                                       r"actions describe a window of 6"):
+    model.apply(params, cache, x[:, 3:], t[:, 3:], a, method="extend")
+  with pytest.raises(ValueError, match=r"\[layers, B\*P, c, heads, head_dim\] = \(1, 32, 2, 2, 16\)"):
+    model.apply(params, jax.tree.map(lambda k: k[:, :16], cache), x[:, 2:], t[:, 2:], a,
+                method="extend")

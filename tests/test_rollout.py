@@ -164,3 +164,27 @@ def test_action_mask_makes_padded_trajectories_match_their_own_rollout():
   np.testing.assert_allclose(padded[:, :6], alone, rtol=1e-5, atol=1e-5)
   with pytest.raises(ValueError, match=r"action_mask must be \[B, N\]"):
     rollout(wm, params, context, actions, rng, horizon=3, action_mask=mask[:, :4])
+
+
+@pytest.mark.parametrize("config,overrides,c,h", [
+    ("wpe_600m.py", ("sampling.num_steps=3",), 3, 2),
+    ("wpe_600m.py", ("sampling.matrix='pyramid'", "sampling.num_steps=2",
+                     "sampling.guidance_scale=2.0", "model.temporal_pos='rope'"), 2, 3),
+    ("irasim.py:S", ("model.causal_temporal=True", "model.cond='video'", "sampling.num_steps=3"),
+     1, 4),
+])
+def test_kv_cache_rollout_equals_the_uncached_rollout(config, overrides, c, h):
+  """sampling.kv_cache encodes the context once per block; the frames are those of the rollout
+  that runs the whole window at every step, open loop and closed loop (float32 rounding of
+  other matmul shapes, compounded over blocks, is the only difference)."""
+  channels = 16 if config.startswith("wpe") else 4
+  wm, params = tiny_world_model(config, *overrides, frame_shape=(8, 8, channels))
+  cached, _ = tiny_world_model(config, *overrides, "sampling.kv_cache=True",
+                               frame_shape=(8, 8, channels))
+  context, actions = _inputs(wm, 2, c, 7, channels=channels)
+  rng = jax.random.key(5)
+  want = rollout(wm, params, context, actions, rng, horizon=h)
+  np.testing.assert_allclose(rollout(cached, params, context, actions, rng, horizon=h), want,
+                             rtol=1e-4, atol=1e-4)
+  np.testing.assert_allclose(_closed_loop(cached, params, context, actions, rng, h), want,
+                             rtol=1e-4, atol=1e-4)

@@ -20,7 +20,6 @@ Backends (``model.attention_impl``):
 
 from __future__ import annotations
 
-import functools
 import math
 
 import jax
@@ -109,7 +108,6 @@ def _cudnn(q, k, v, causal):
   return out[..., :d]
 
 
-@functools.lru_cache(maxsize=None)
 def _splash_kernel(heads: int, query_len: int, key_len: int, causal_offset: int | None,
                    interpret: bool):
   """A splash kernel for ``[H, L, d]`` inputs; ``causal_offset`` None: no causal mask."""
