@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
 import time
 
@@ -44,3 +45,11 @@ def median_seconds(fn, repeats: int) -> tuple[float, float]:
     jax.block_until_ready(fn())
     times.append(time.perf_counter() - start)
   return statistics.median(times), compile_s
+
+
+def peak_memory() -> dict:
+  """Peak memory so far: the first device's allocator peak (GPU / TPU; None on CPU, whose
+  allocator keeps no statistics) and this process's peak resident set (host)."""
+  stats = jax.devices()[0].memory_stats() or {}
+  return {"peak_device_bytes": stats.get("peak_bytes_in_use"),
+          "peak_host_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}

@@ -18,7 +18,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from common import add_config_arguments, write_result
+from common import add_config_arguments, peak_memory, write_result
 from wmjax.config import load_config
 from wmjax.nn import forward_flops
 from wmjax.parallel import make_mesh
@@ -70,7 +70,7 @@ def benchmark(spec: str, overrides: list[str], batch: int, frames: int | None, s
       "step_ms": step_s * 1e3, "samples_per_s": batch / step_s,
       "train_tflop_per_step": flops / 1e12, "achieved_tflops_per_s": achieved,
       "peak_tflops_per_s": peak, "mfu": achieved / (peak * jax.device_count()) if peak else None,
-      "loss": float(metrics["loss"]),
+      "loss": float(metrics["loss"]), **peak_memory(),
   }
 
 

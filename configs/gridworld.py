@@ -34,7 +34,7 @@ def get_config() -> ml_collections.ConfigDict:
       kind="gaussian", schedule="sigmoid", num_timesteps=1000, prediction="v",
       regime="per_frame", num_context=1))
   config.sampling = sampling_config(sampler="ddim", num_steps=10, context_level=15.0,
-                                    clip_denoised=True)
+                                    clip_denoised=True, kv_cache=True)
   config.rollout = ml_collections.ConfigDict(dict(context=1, horizon=5))
   config.optim = optim_config(learning_rate=3e-3, schedule="cosine", warmup_steps=100,
                               total_steps=1800, b2=0.99, grad_clip=1.0, ema_decay=0.999)

@@ -151,3 +151,21 @@ def test_whole_model_with_splash_equals_xla(config, channels, monkeypatch):
   assert lengths and set(lengths) == {256}
   assert float(jnp.abs(want).mean()) > 0
   np.testing.assert_allclose(got, want, atol=1e-4, rtol=1e-4)
+
+
+def test_splash_runs_one_kernel_per_device_under_a_mesh(monkeypatch):
+  """XLA cannot partition a Pallas call: under a mesh context the sequences are split over the
+  batch axes and the heads over 'tensor' with shard_map, and the result is unchanged."""
+  assert jax.device_count() == 8
+  local_shapes = []
+  local = attention._splash_local
+  monkeypatch.setattr(attention, "_splash_local",
+                      lambda q, *args, **kw: local_shapes.append(q.shape) or local(q, *args, **kw))
+  q, k, v = _qkv(200, 200, heads=2, batch=8)
+  want = attend(q, k, v, causal=True, backend="xla")
+  mesh = jax.make_mesh((4, 1, 2), ("data", "fsdp", "tensor"),
+                       axis_types=(jax.sharding.AxisType.Auto,) * 3)
+  with jax.set_mesh(mesh):
+    got = jax.jit(lambda q, k, v: attend(q, k, v, causal=True, backend="splash"))(q, k, v)
+  assert local_shapes == [(2, 200, 1, 16)]  # 8 sequences / 4, 2 heads / 2
+  np.testing.assert_allclose(got, want, atol=2e-5)

@@ -20,6 +20,7 @@ import numpy as np
 
 from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.stats import ActionStats
+from wmjax.parallel import shard_rollout_batch
 from wmjax.rollout import WorldModel, block_key, sample_block
 
 if TYPE_CHECKING:
@@ -118,7 +119,8 @@ class WorldModelEnv:
     if not bool(jnp.isfinite(frames).all()):
       raise ValueError("initial_frames contain NaN or inf values")
     b, c0 = frames.shape[:2]
-    self._window = self.codec.encode(frames, jax.random.split(self.rng)[1])
+    # Episodes are split over the local devices (when B divides evenly); every step follows.
+    self._window, = shard_rollout_batch(self.codec.encode(frames, jax.random.split(self.rng)[1]))
     self._history = np.zeros((b, c0 - 1, self.action_dim), np.float32)
     self._known = np.zeros((b, c0 - 1), bool)
     if context_actions is not None:

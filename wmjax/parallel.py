@@ -7,6 +7,7 @@ slice and :func:`global_batch` assembles the slices into global ``jax.Array``s.
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any, Mapping, Sequence
 
 import flax.linen as nn
@@ -108,3 +109,13 @@ def shard_rollout_batch(*arrays):
     out.append(jax.device_put(x, NamedSharding(mesh, spec)))
   return out
 
+
+
+def mesh_context(*arrays):
+  """``jax.set_mesh`` of the first array laid out by a ``NamedSharding`` over several devices, or
+  a null context. Kernels that XLA cannot partition (splash attention) read the mesh from it."""
+  for x in arrays:
+    sharding = getattr(x, "sharding", None)
+    if isinstance(sharding, NamedSharding) and sharding.mesh.size > 1:
+      return jax.set_mesh(sharding.mesh)
+  return contextlib.nullcontext()

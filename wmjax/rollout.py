@@ -26,6 +26,7 @@ from wmjax.diffusion import objectives
 from wmjax.diffusion.sampling import (DenoiseFn, SamplerConfig, classifier_free_guidance,
                                       context_inputs, sample_window, window_denoiser)
 from wmjax.nn.dit import STDiT
+from wmjax.parallel import mesh_context
 
 Params = Any
 
@@ -205,7 +206,8 @@ def sample_block(world_model: WorldModel, params: Params, context: jax.Array,
   elif tuple(window_mask.shape) != tuple(window_actions.shape[:2]):
     raise ValueError(f"window_mask must be [B, c+h-1] = {tuple(window_actions.shape[:2])}, got "
                      f"{tuple(window_mask.shape)}")
-  return _sample_block_jit(world_model, params, context, window_actions, window_mask, rng)
+  with mesh_context(context):
+    return _sample_block_jit(world_model, params, context, window_actions, window_mask, rng)
 
 
 # ----------------------------------------------------------------------------- rollout
@@ -273,5 +275,6 @@ def rollout(world_model: WorldModel, params: Params, context: jax.Array, actions
                                  jnp.zeros((b, pad, a), jnp.float32)], axis=1)
   known = jnp.ones((b, n), bool) if action_mask is None else jnp.asarray(action_mask, bool)
   mask = jnp.concatenate([context_known, known, jnp.zeros((b, pad), bool)], 1)
-  return _rollout_jit(world_model, params, jnp.asarray(context), all_actions, mask, rng,
-                      horizon, c + n)
+  with mesh_context(context):
+    return _rollout_jit(world_model, params, jnp.asarray(context), all_actions, mask, rng,
+                        horizon, c + n)

@@ -32,6 +32,7 @@ from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.stats import ActionStats
 from wmjax.env import RewardFn, WorldModelEnv, frames_to_model
 from wmjax.eval.metrics import mean_stderr
+from wmjax.parallel import mesh_context, shard_rollout_batch
 from wmjax.rollout import WorldModel, _sample_block, block_key
 
 Policy = Callable[[Any, jax.Array], Any]
@@ -73,7 +74,8 @@ def scan_episodes(world_model: WorldModel, params: Any, policy: Policy, initial_
   """Roll a pure-JAX ``policy`` out for ``num_blocks`` blocks of ``horizon`` frames inside one
   jitted scan. The window is ``initial_frames [B, c, H, W, 3]`` (``c`` fixed; the model's
   context); the policy gets the window's RGB frames and must return at least ``horizon`` raw
-  actions. Returns ``frames [B, c+num_blocks*horizon, H, W, 3]`` and raw ``actions``."""
+  actions. Returns ``frames [B, c+num_blocks*horizon, H, W, 3]`` and raw ``actions``. The
+  batch is split over the local devices when it divides evenly between them."""
   codec = codec or PixelCodec()
   frames = frames_to_model(initial_frames)
   if frames.ndim != 5:
@@ -90,9 +92,12 @@ def scan_episodes(world_model: WorldModel, params: Any, policy: Policy, initial_
     history = _normalizer(action_stats, normalization, a)(jnp.asarray(context_actions))
     known[:] = True
   window = codec.encode(frames, jax.random.split(rng)[1])
+  # The episodes are split over the local devices (when B divides evenly); the scan follows.
+  frames, window, history, known = shard_rollout_batch(frames, window, history, jnp.asarray(known))
   run = _scan_fn(world_model, policy, codec, _StatsKey(action_stats), normalization, num_blocks,
                  horizon)
-  frames, actions = run(params, frames, window, history, jnp.asarray(known), rng, key)
+  with mesh_context(window):
+    frames, actions = run(params, frames, window, history, known, rng, key)
   return {"frames": frames, "actions": actions}
 
 

@@ -20,11 +20,15 @@ Backends (``model.attention_impl``):
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import PartitionSpec
+
+from wmjax.parallel import BATCH_AXES
 
 ATTENTION_BACKENDS = ("xla", "cudnn", "splash", "auto")
 FLASH_DTYPES = (jnp.bfloat16, jnp.float16)
@@ -128,6 +132,25 @@ def _splash_kernel(heads: int, query_len: int, key_len: int, causal_offset: int 
 
 
 def _splash(q, k, v, causal):
+  """Splash attention; under a mesh context (``jax.set_mesh``, as the trainer and sharded
+  rollouts set) one kernel per device through ``shard_map``: XLA cannot partition a Pallas call.
+  The sequences' leading axis (batch-major) is split over the batch axes, heads over ``tensor``."""
+  mesh = jax.sharding.get_abstract_mesh()
+  names = mesh.axis_names if not mesh.empty else ()
+  batch = tuple(a for a in BATCH_AXES if a in names and mesh.shape[a] > 1)
+  if batch and q.shape[0] % math.prod(mesh.shape[a] for a in batch):
+    batch = ()
+  heads = "tensor" if ("tensor" in names and mesh.shape["tensor"] > 1
+                       and q.shape[2] % mesh.shape["tensor"] == 0) else None
+  if not batch and heads is None:
+    return _splash_local(q, k, v, causal)
+  spec = PartitionSpec(batch or None, None, heads, None)
+  local = functools.partial(_splash_local, causal=causal)
+  return jax.shard_map(local, mesh=mesh, in_specs=(spec, spec, spec), out_specs=spec,
+                       check_vma=False)(q, k, v)
+
+
+def _splash_local(q, k, v, causal):
   from jax.experimental.pallas.ops.tpu.splash_attention import splash_attention_kernel as kernel
   n, lq, h, d = q.shape
   lk = k.shape[1]

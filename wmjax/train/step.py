@@ -92,12 +92,19 @@ class ShardedTrainer:
     self.abstract_state = abstract_with_shardings(nn.unbox(abstract), self.state_shardings)
     self.batch_sharding = parallel.batch_sharding(mesh)
     replicated = NamedSharding(mesh, PartitionSpec())
-    self.init = jax.jit(lambda rng: nn.unbox(init(rng)), out_shardings=self.state_shardings)
+    self._init = jax.jit(lambda rng: nn.unbox(init(rng)), out_shardings=self.state_shardings)
     self._step = jax.jit(make_train_step(world_model, config, self.tx),
                          in_shardings=(self.state_shardings, self.batch_sharding,
                                        self.batch_sharding),
                          out_shardings=(self.state_shardings, replicated), donate_argnums=0)
 
+  # Both run with the mesh in context, for kernels that are split over it by hand (splash).
+
+  def init(self, rng: jax.Array) -> TrainState:
+    with jax.set_mesh(self.mesh):
+      return self._init(rng)
+
   def step(self, state: TrainState, frames: Any, actions: Any):
     check_batch_shapes(self.world_model, frames.shape, actions.shape, self.mesh)
-    return self._step(state, frames, actions)
+    with jax.set_mesh(self.mesh):
+      return self._step(state, frames, actions)
