@@ -4,6 +4,7 @@ on a tiny gridworld model trained here."""
 import csv
 import json
 import os
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -244,3 +245,17 @@ def test_rollout_command_applies_the_checkpoint_normalisation(workdir, tmp_path)
   with pytest.raises(ValueError, match="the model takes 4-dim actions, the file has 3"):
     cli.main(["rollout", "--workdir", workdir, "--frames", str(tmp_path / "start.png"),
               "--actions", str(tmp_path / "wrong.npy"), "--out", str(out)])
+
+
+def test_checkpoints_from_before_a_config_field_take_its_override(workdir, tmp_path):
+  """A checkpoint whose stored config predates sampling.kv_cache and model.attention_impl loads
+  with their defaults, and the new fields can be overridden."""
+  old = tmp_path / "old"
+  shutil.copytree(workdir, old)
+  for metadata in old.glob("checkpoints/*/config/metadata"):
+    stored = json.loads(metadata.read_text())
+    del stored["sampling"]["kv_cache"], stored["model"]["attention_impl"]
+    metadata.write_text(json.dumps(stored))
+  assert load_model(str(old)).world_model.sampler.kv_cache is False
+  model = load_model(str(old), overrides=["sampling.kv_cache=True"])
+  assert model.world_model.sampler.kv_cache and model.world_model.network.attention_impl == "xla"

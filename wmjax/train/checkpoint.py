@@ -18,7 +18,7 @@ import ml_collections
 import orbax.checkpoint as ocp
 
 from wmjax.codecs import Codec, make_codec
-from wmjax.config import apply_overrides
+from wmjax.config import apply_overrides, model_config, sampling_config
 from wmjax.parallel import local_data_mesh
 from wmjax.data.stats import ActionStats
 from wmjax.rollout import WorldModel
@@ -114,7 +114,12 @@ def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
       raise ValueError(f"no checkpoint for step {step} in {directory}; steps: {sorted(steps)}")
     meta = manager.restore(step, args=ocp.args.Composite(
         config=ocp.args.JsonRestore(), action_stats=ocp.args.JsonRestore()))
-    config = apply_overrides(ml_collections.ConfigDict(meta.config), overrides)
+    config = ml_collections.ConfigDict(meta.config)
+    # A checkpoint written before a model or sampling field existed gets its default, which an
+    # override may then change (e.g. sampling.kv_cache).
+    config.model = model_config(**config.model.to_dict())
+    config.sampling = sampling_config(**config.sampling.to_dict())
+    config = apply_overrides(config, overrides)
     world_model = WorldModel.from_config(config)
     frame_shape = tuple(config.frame_shape)
     abstract = nn.unbox(jax.eval_shape(
