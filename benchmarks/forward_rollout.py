@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from common import add_config_arguments, median_seconds, peak_memory, write_result
 from wmjax.config import load_config
 from wmjax.nn import forward_flops
-from wmjax.rollout import WorldModel, rollout
+from wmjax.rollout import WorldModel, block_flops, rollout
 
 
 def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,
@@ -47,15 +47,9 @@ def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,
   rollout_actions = jnp.zeros((batch, frames, net.action_dim))
   run = lambda: rollout(wm, params, context, rollout_actions, jax.random.key(3), horizon=h)
   rollout_s, rollout_compile_s = median_seconds(run, repeats)
-  copies = 2 if wm.sampler.guidance_scale != 1.0 else 1
-  calls = wm.sampler.model_calls(h) * copies
+  calls = wm.sampler.model_calls(h) * (2 if wm.guided else 1)
   blocks = -(-frames // h)
-  if wm.sampler.kv_cache:  # the context once, then the new frames at every call (approximate:
-    # the new frames' temporal attention over the cached keys is not counted)
-    block_flops = copies * forward_flops(net, batch, c, shape[0], shape[1]) + calls * (
-        forward_flops(net, batch, h, shape[0], shape[1]))
-  else:
-    block_flops = calls * flops
+  flops_per_block = block_flops(wm, batch, c, h, shape[0], shape[1])
   return {
       "config": config_spec, "overrides": overrides, "name": config.get("name", config_spec),
       "device": jax.devices()[0].device_kind, "platform": jax.default_backend(),
@@ -67,7 +61,7 @@ def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,
       "sampling_steps": wm.sampler.num_steps, "model_calls_per_block": calls,
       "rollout_s": rollout_s, "rollout_compile_s": rollout_compile_s,
       "rollout_frames_per_s": batch * frames / rollout_s,
-      "rollout_tflops_per_s": blocks * block_flops / rollout_s / 1e12,
+      "rollout_tflops_per_s": blocks * flops_per_block / rollout_s / 1e12,
       "kv_cache": wm.sampler.kv_cache, "attention_impl": net.attention_impl, **peak_memory(),
   }
 

@@ -1,5 +1,7 @@
 """The ST-DiT: sizes, per-frame conditioning, sharding annotations, FLOPs and input checks."""
 
+import json
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -238,3 +240,22 @@ def test_kv_cache_inputs_are_checked():
   with pytest.raises(ValueError, match=r"\[layers, B\*P, c, heads, head_dim\] = \(1, 32, 2, 2, 16\)"):
     model.apply(params, jax.tree.map(lambda k: k[:, :16], cache), x[:, 2:], t[:, 2:], a,
                 method="extend")
+
+
+def test_sampling_flops_count_a_cached_context_once(capsys):
+  from wmjax import cli
+  from wmjax.rollout import block_flops
+  config = ROOT / "configs" / "wpe_600m.py"
+  cached = WorldModel.from_config(tiny_config("wpe_600m.py", "sampling.num_steps=4"))
+  uncached = WorldModel.from_config(tiny_config("wpe_600m.py", "sampling.num_steps=4",
+                                                "sampling.kv_cache=False"))
+  f = lambda frames: forward_flops(cached.network, 2, frames, 8, 8)
+  assert cached.sampler.kv_cache
+  assert block_flops(uncached, 2, 3, 5, 8, 8) == 4 * f(8)
+  assert block_flops(cached, 2, 3, 5, 8, 8) == f(3) + 4 * f(5)
+  reports = []
+  for kv in ("True", "False"):
+    assert cli.main(["info", "--config", str(config), f"--config.sampling.kv_cache={kv}"]) == 0
+    reports.append(json.loads(capsys.readouterr().out))
+  assert reports[0]["kv_cache"] and not reports[1]["kv_cache"]
+  assert reports[0]["gflop_per_generated_frame"] < 0.6 * reports[1]["gflop_per_generated_frame"]

@@ -195,7 +195,7 @@ def cmd_info(args, extra) -> int:
   """Parameter count, forward FLOPs, sampling cost and a per-device training-memory estimate of a
   config, without allocating the model."""
   from wmjax.nn import forward_flops
-  from wmjax.rollout import WorldModel
+  from wmjax.rollout import WorldModel, block_flops
 
   config = _config_from_args(args, extra)
   wm = WorldModel.from_config(config)
@@ -206,7 +206,8 @@ def cmd_info(args, extra) -> int:
   params = sum(int(np.prod(p.shape)) for p in jax.tree.leaves(shapes))
   flops = forward_flops(net, 1, frames, h, w)
   calls = wm.sampler.model_calls(config.rollout.horizon)
-  guidance = 2 if wm.sampler.guidance_scale != 1.0 else 1
+  guidance = 2 if wm.guided else 1
+  sampling_flops = block_flops(wm, 1, config.rollout.context, config.rollout.horizon, h, w)
   info = {
       "name": config.get("name", args.config),
       "parameters": params,
@@ -215,7 +216,8 @@ def cmd_info(args, extra) -> int:
       "window_frames": frames,
       "forward_gflop_per_window": flops / 1e9,
       "model_calls_per_block": calls * guidance,
-      "gflop_per_generated_frame": flops * calls * guidance / config.rollout.horizon / 1e9,
+      "kv_cache": wm.sampler.kv_cache,
+      "gflop_per_generated_frame": sampling_flops / config.rollout.horizon / 1e9,
   }
   if "batch_size" in config and "mesh" in config:
     from wmjax.train import memory

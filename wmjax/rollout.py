@@ -26,6 +26,7 @@ from wmjax.diffusion import objectives
 from wmjax.diffusion.sampling import (DenoiseFn, SamplerConfig, classifier_free_guidance,
                                       context_inputs, sample_window, window_denoiser)
 from wmjax.nn.dit import STDiT
+from wmjax.nn.flops import forward_flops
 from wmjax.parallel import mesh_context
 
 Params = Any
@@ -118,6 +119,20 @@ class WorldModel:
       return self._guide(out)
 
     return denoise
+
+
+def block_flops(world_model: WorldModel, batch: int, context: int, horizon: int, height: int,
+                width: int) -> float:
+  """Analytic network FLOPs of sampling one block of ``horizon`` frames after ``context`` frames:
+  every model call runs the whole window, or, with ``sampler.kv_cache``, the context runs once and
+  each call runs the new frames (their attention to the cached keys is left out). Guidance
+  doubles everything."""
+  net, copies = world_model.network, 2 if world_model.guided else 1
+  calls = world_model.sampler.model_calls(horizon)
+  if world_model.sampler.kv_cache:
+    return copies * (forward_flops(net, batch, context, height, width)
+                     + calls * forward_flops(net, batch, horizon, height, width))
+  return copies * calls * forward_flops(net, batch, context + horizon, height, width)
 
 
 # ----------------------------------------------------------------------------- validation
