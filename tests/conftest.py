@@ -44,3 +44,11 @@ def tiny_world_model(config: str = "irasim.py:S", *overrides: str, frame_shape=(
 @pytest.fixture
 def rng():
   return jax.random.key(0)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_compiled_programs():
+  """Drop every module's compiled programs when it ends: the suite compiles hundreds of them
+  (interpret-mode Pallas kernels among them), and one process keeps them all otherwise."""
+  yield
+  jax.clear_caches()

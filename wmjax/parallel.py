@@ -100,15 +100,14 @@ def local_data_mesh() -> jax.sharding.Mesh:
 
 
 def shard_rollout_batch(*arrays):
-  """Put arrays with a leading batch axis on :func:`local_data_mesh`, split over the devices when
-  the batch divides evenly (otherwise replicated)."""
+  """Put arrays with a leading batch axis on :func:`local_data_mesh`, split over the devices,
+  when the batch divides evenly between them; otherwise return them as they are (a replicated
+  batch would make every device compute all of it)."""
   mesh = local_data_mesh()
-  out = []
-  for x in arrays:
-    spec = PartitionSpec("data") if x.shape[0] % mesh.size == 0 else PartitionSpec()
-    out.append(jax.device_put(x, NamedSharding(mesh, spec)))
-  return out
-
+  if mesh.size == 1 or any(np.shape(x)[0] % mesh.size for x in arrays):
+    return list(arrays)
+  sharding = NamedSharding(mesh, PartitionSpec("data"))
+  return [jax.device_put(x, sharding) for x in arrays]
 
 
 def mesh_context(*arrays):
