@@ -148,7 +148,8 @@ def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(data_dir, tmp_path, m
     assert np.isfinite(value).all()
 
 
-def test_sigterm_saves_and_exits_cleanly(data_dir, tmp_path):
+def test_sigterm_saves_and_exits_with_143(data_dir, tmp_path):
+  """SIGTERM before the last step saves a checkpoint and exits 128 + 15: unfinished."""
   overrides = _overrides(data_dir, **{"train.num_steps": 100000, "train.checkpoint_every": 1000})
   process = subprocess.Popen(_train_command(tmp_path, overrides), cwd=ROOT, env=_env(),
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -159,7 +160,7 @@ def test_sigterm_saves_and_exits_cleanly(data_dir, tmp_path):
     time.sleep(0.05)
   process.send_signal(signal.SIGTERM)
   stdout, stderr = process.communicate(timeout=300)
-  assert process.returncode == 0, stderr[-2000:]
+  assert process.returncode == 143, stderr[-2000:]
   assert "SIGTERM: saved step" in stdout
   step = json.loads(stdout[stdout.index("{"):])["step"]
   assert (tmp_path / "checkpoints" / str(step)).is_dir() and 3 <= step < 100000

@@ -12,7 +12,8 @@
   wmjax data encode --config FILE --out DIR [--splits train,test]
   wmjax data stats BUILDER_DIR [--split train] [--recompute]
 
-Config overrides use ``--config.dotted.key=value`` with Python literal values.
+Config overrides use ``--config.dotted.key=value`` with Python literal values (train, evaluate,
+rollout, eval-policy, plan, info, data encode); an unknown key or flag is an error.
 """
 
 from __future__ import annotations
@@ -26,6 +27,20 @@ import jax
 import numpy as np
 
 
+OVERRIDES_HELP = ("Config overrides: --config.KEY=VALUE, any number, with a Python literal "
+                  "VALUE (strings may be bare), e.g. --config.train.num_steps=100 "
+                  "--config.optim.learning_rate=3e-4 --config.model.dtype=bfloat16; an unknown "
+                  "KEY is an error that names the nearest one.")
+
+RESUME_HELP = ("Rerunning in a WORKDIR with checkpoints resumes from the newest one that reads "
+               "back (a damaged newer one is moved to WORKDIR/damaged_checkpoints with a "
+               "warning). The config must then match the checkpoint's, except for changes that "
+               "are always accepted: {safe}; any other change stops with the list of differing "
+               "keys unless --allow_config_change names them (or their section); changes of "
+               "parameter shapes are always refused. SIGTERM or Ctrl-C save a checkpoint and "
+               "exit with 143 / 130; a NaN / inf loss or a failed save exits with 1.")
+
+
 def _overrides(extra: list[str]) -> list[str]:
   bad = [a for a in extra if not a.startswith("--config.")]
   if bad:
@@ -36,6 +51,13 @@ def _overrides(extra: list[str]) -> list[str]:
 def _config_from_args(args, extra: list[str]):
   from wmjax.config import load_config
   return load_config(args.config, _overrides(extra))
+
+
+def _register(parser: argparse.ArgumentParser, func, overrides: bool = False) -> None:
+  """``parser`` runs ``func``; only commands with ``overrides`` take --config.KEY=VALUE."""
+  parser.set_defaults(func=func, takes_overrides=overrides, command_parser=parser)
+  if overrides and not parser.epilog:
+    parser.epilog = OVERRIDES_HELP
 
 
 def _maybe_initialize_distributed(args) -> None:
@@ -55,17 +77,15 @@ def _maybe_initialize_distributed(args) -> None:
 
 def cmd_train(args, extra) -> int:
   """Train a world model in WORKDIR, resuming from its latest checkpoint if it has one."""
-  from wmjax.train.loop import NonFiniteLossError, train
+  from wmjax.train.loop import train
   _maybe_initialize_distributed(args)
   config = _config_from_args(args, extra)
-  try:
-    _, result = train(config, args.workdir)
-  except NonFiniteLossError as e:
-    print(f"wmjax train: {e}", file=sys.stderr)
-    return 1
+  allow = [k for item in args.allow_config_change for k in item.split(",") if k.strip()]
+  _, result = train(config, args.workdir, allow_config_change=allow)
   if jax.process_index() == 0:
     print(json.dumps(result, indent=2))
-  return 0
+  # stopped by a signal before the end: the conventional 128 + signal (143 SIGTERM, 130 SIGINT)
+  return 128 + result["signal"] if "signal" in result else 0
 
 
 def cmd_evaluate(args, extra) -> int:
@@ -102,23 +122,39 @@ def cmd_rollout(args, extra) -> int:
   model = load_model(args.workdir, step=args.step, params=args.params,
                      overrides=_overrides(extra), param_dtype=args.param_dtype)
   config = model.config
-  frames = inputs.read_frames(args.frames, model.image_shape, resize=args.resize)
+  frames = inputs.read_frames(args.frames, model.image_shape, resize=args.resize,
+                              value_range=args.frame_range)
   actions = inputs.read_actions(args.actions, model.action_stats.action_dim)
+  stats = model.action_stats
+  if not args.allow_extrapolation:
+    low, high = stats.min, stats.max
+    if args.normalized:
+      mode = config.data.normalization
+      low, high = stats.normalize(low[None], mode)[0], stats.normalize(high[None], mode)[0]
+    inputs.check_action_range(actions, low, high, args.actions)
   if len(frames) != len(actions):
     raise SystemExit(f"wmjax rollout: {len(frames)} start-frame sets but {len(actions)} action "
                      f"sequences")
-  actions = model.action_stats.normalize(
-      actions, "none" if args.normalized else config.data.normalization,
-      pad_to=config.model.action_dim)
+  actions = stats.normalize(actions, "none" if args.normalized else config.data.normalization,
+                            pad_to=config.model.action_dim)
   c = frames.shape[1]
-  horizon = args.horizon or min(config.rollout.horizon, config.model.num_frames - c)
-  if horizon < 1:
+  room = config.model.num_frames - c
+  if room < 1:
     raise SystemExit(f"wmjax rollout: {c} context frames leave no room in the model's "
                      f"{config.model.num_frames}-frame window")
+  if args.horizon is not None and not 1 <= args.horizon <= room:
+    raise SystemExit(f"wmjax rollout: --horizon must be between 1 and {room} (the model's "
+                     f"{config.model.num_frames}-frame window less {c} context frame(s)), got "
+                     f"{args.horizon}")
+  horizon = args.horizon or min(config.rollout.horizon, room)
   encode_key, rollout_key = jax.random.split(jax.random.key(args.seed))
   context = model.codec.encode(frames_to_model(frames), encode_key)
-  out = to_uint8(model.codec.decode(rollout(model.world_model, model.params, context, actions,
-                                            rollout_key, horizon=horizon)))
+  decoded = np.asarray(model.codec.decode(rollout(model.world_model, model.params, context,
+                                                  actions, rollout_key, horizon=horizon)))
+  if not np.isfinite(decoded).all():
+    raise SystemExit("wmjax rollout: the model produced NaN / inf frames from these inputs; "
+                     "nothing was written")
+  out = to_uint8(decoded)
   os.makedirs(args.out, exist_ok=True)
   np.save(os.path.join(args.out, "frames.npy"), out)
   video = video_lib.stack_rows(list(out))
@@ -310,13 +346,13 @@ def _add_data_commands(sub) -> None:
       shown = ",".join(map(str, field.default)) if isinstance(field.default, tuple) else field.default
       dataset.add_argument(f"--{field.name}", type=parse, default=field.default,
                            help=f"{name} {field.name} (default {shown})")
-    dataset.set_defaults(func=cmd_data_prepare)
+    _register(dataset, cmd_data_prepare)
 
   convert = data_sub.add_parser("convert", help="TFRecord RLDS -> ArrayRecord (no beam)",
                                 description=cmd_data_convert.__doc__)
   convert.add_argument("src", help="builder directory, e.g. gs://gresearch/robotics/bridge/0.1.0")
   convert.add_argument("dst", help="output builder directory (must not exist)")
-  convert.set_defaults(func=cmd_data_convert)
+  _register(convert, cmd_data_convert)
 
   encode = data_sub.add_parser("encode", help="pre-encode a dataset with the config's codec",
                                description=cmd_data_encode.__doc__)
@@ -326,7 +362,7 @@ def _add_data_commands(sub) -> None:
                       help="comma-separated splits (default: the config's train and eval splits)")
   encode.add_argument("--dataset", default=None, help="the mixture member to encode")
   encode.add_argument("--seed", type=int, default=0, help="for codecs that sample latents")
-  encode.set_defaults(func=cmd_data_encode)
+  _register(encode, cmd_data_encode, overrides=True)
 
   stats = data_sub.add_parser("stats", help="action statistics, cached as JSON beside the data",
                               description=cmd_data_stats.__doc__)
@@ -334,7 +370,7 @@ def _add_data_commands(sub) -> None:
   stats.add_argument("--split", default="train")
   stats.add_argument("--name", default=None, help="dataset spec name (default: the builder's)")
   stats.add_argument("--recompute", action="store_true")
-  stats.set_defaults(func=cmd_data_stats)
+  _register(stats, cmd_data_stats)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -349,7 +385,12 @@ def main(argv: list[str] | None = None) -> int:
                      help="host:port of process 0, for a multi-process run started by hand")
   train.add_argument("--num_processes", type=int, default=None)
   train.add_argument("--process_id", type=int, default=None)
-  train.set_defaults(func=cmd_train)
+  train.add_argument("--allow_config_change", action="append", default=[], metavar="KEY[,KEY]",
+                     help="on resume, accept these changed config keys (or whole sections, e.g. "
+                          "optim); repeatable")
+  _register(train, cmd_train, overrides=True)
+  from wmjax.train.resume import SAFE_ON_RESUME
+  train.epilog = OVERRIDES_HELP + " " + RESUME_HELP.format(safe=", ".join(SAFE_ON_RESUME))
 
   evaluate = sub.add_parser("evaluate", help="IRASim / WPE evaluation of a checkpoint",
                             description=cmd_evaluate.__doc__)
@@ -376,7 +417,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="FID features: frames [N, H, W, 3] in [0, 1] -> [N, D]")
   evaluate.add_argument("--clip_features", default=None, metavar="MODULE:FUNCTION",
                         help="FVD features: clips [N, T, H, W, 3] in [0, 1] -> [N, D]")
-  evaluate.set_defaults(func=cmd_evaluate)
+  _register(evaluate, cmd_evaluate, overrides=True)
 
   roll = sub.add_parser("rollout", help="roll a checkpoint out from your frames and actions",
                         description=cmd_rollout.__doc__)
@@ -396,7 +437,11 @@ def main(argv: list[str] | None = None) -> int:
   roll.add_argument("--resize", action="store_true", help="resize frames to the model's size")
   roll.add_argument("--normalized", action="store_true",
                     help="the actions are already normalised (skip the checkpoint statistics)")
-  roll.set_defaults(func=cmd_rollout)
+  roll.add_argument("--frame_range", choices=["-1,1", "0,1"], default=None,
+                    help="value range of float .npy frames (needed when they are all >= 0)")
+  roll.add_argument("--allow_extrapolation", action="store_true",
+                    help="roll out actions far outside the training range (refused otherwise)")
+  _register(roll, cmd_rollout, overrides=True)
 
   def simulator_args(parser, default_out):
     parser.add_argument("--workdir", required=True, help="training workdir with checkpoints/")
@@ -425,7 +470,7 @@ def main(argv: list[str] | None = None) -> int:
   policy.add_argument("--scan", action="store_true",
                       help="roll out inside one jitted scan (pure-JAX policies)")
   policy.add_argument("--videos", type=int, default=4, help="episodes per policy video")
-  policy.set_defaults(func=cmd_eval_policy)
+  _register(policy, cmd_eval_policy, overrides=True)
 
   plan = sub.add_parser("plan", help="model-predictive control by ranking, run in the simulator",
                         description=cmd_plan.__doc__, epilog=overrides_note)
@@ -444,7 +489,7 @@ def main(argv: list[str] | None = None) -> int:
                          "goal:IMAGE (default coverage)")
   plan.add_argument("--lookahead", action="store_true",
                     help="also plan with the simulator itself as the model (a reference)")
-  plan.set_defaults(func=cmd_plan)
+  _register(plan, cmd_plan, overrides=True)
 
   launch = sub.add_parser("launch", help="run a command as N local processes (jax.distributed)",
                           description=cmd_launch.__doc__)
@@ -455,17 +500,30 @@ def main(argv: list[str] | None = None) -> int:
   launch.add_argument("--port", type=int, default=None, help="coordinator port (default: free)")
   launch.add_argument("command", nargs=argparse.REMAINDER,
                       help="-- followed by the wmjax command, e.g. -- train --config F ...")
-  launch.set_defaults(func=cmd_launch)
+  _register(launch, cmd_launch)
 
   info = sub.add_parser("info", help="parameter count and FLOPs of a config (no allocation)",
                         description=cmd_info.__doc__)
   info.add_argument("--config", required=True, help="config file, optionally file.py:arg")
   info.add_argument("--devices", type=int, default=None,
                     help="devices to estimate training memory for (default: this machine's)")
-  info.set_defaults(func=cmd_info)
+  _register(info, cmd_info, overrides=True)
   _add_data_commands(sub)
   args, extra = parser.parse_known_args(argv)
-  return args.func(args, extra)
+  if args.func is not cmd_launch:  # launch passes the rest on to its command
+    bad = [a for a in extra if not (args.takes_overrides and a.startswith("--config."))]
+    if bad:
+      args.command_parser.error(
+          f"unrecognized arguments: {' '.join(bad)}"
+          + ("; config overrides look like --config.KEY=VALUE" if args.takes_overrides else ""))
+  from wmjax.config import ConfigError
+  from wmjax.train.errors import RunError
+  try:
+    return args.func(args, extra)
+  except (ConfigError, RunError) as e:
+    # a condition the message explains, with the way out: no traceback
+    print(f"{args.command_parser.prog}: {e}", file=sys.stderr)
+    return 2 if isinstance(e, ConfigError) else 1
 
 
 if __name__ == "__main__":

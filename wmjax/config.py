@@ -4,11 +4,16 @@ from __future__ import annotations
 
 import ast
 import dataclasses
+import difflib
 import importlib.util
 import os
 from typing import Sequence
 
 import ml_collections
+
+
+class ConfigError(ValueError):
+  """A config file or override that cannot be used (unknown key, wrong type, missing file)."""
 
 
 def _parse_value(text: str):
@@ -22,19 +27,35 @@ def load_config(spec: str, overrides: Sequence[str] = ()) -> ml_collections.Conf
   """Run ``get_config(arg)`` of the file in ``spec`` (``file.py`` or ``file.py:arg``).
 
   ``overrides`` are ``dotted.key=value`` strings; values are Python literals (strings may be
-  bare). An unknown key or a value of the wrong type raises ValueError.
+  bare). An unknown key (with the nearest known one) or a value of the wrong type raises
+  ValueError.
   """
   path, _, arg = spec.partition(":")
   if not os.path.isfile(path):
-    raise ValueError(f"config file not found: {path!r}")
+    raise ConfigError(f"config file not found: {path!r}")
   module_spec = importlib.util.spec_from_file_location(
       f"wmjax_config_{abs(hash(os.path.abspath(path)))}", path)
   module = importlib.util.module_from_spec(module_spec)
   module_spec.loader.exec_module(module)
   if not hasattr(module, "get_config"):
-    raise ValueError(f"{path} defines no get_config()")
+    raise ConfigError(f"{path} defines no get_config()")
   config = module.get_config(arg) if arg else module.get_config()
   return apply_overrides(config, overrides)
+
+
+def _check_key(config: ml_collections.ConfigDict, key: str) -> None:
+  """ValueError for a key the config does not have, with the nearest known name."""
+  node, parts = config, key.split(".")
+  for i, part in enumerate(parts):
+    if not isinstance(node, ml_collections.ConfigDict) or part not in node:
+      where = ".".join(parts[:i])
+      known = sorted(node.keys()) if isinstance(node, ml_collections.ConfigDict) else []
+      close = difflib.get_close_matches(part, known, n=1)
+      hint = (f"; did you mean {where + '.' if where else ''}{close[0]}?" if close else
+              f"; {where or 'the config'} has {known}" if known else
+              f"; {where} is not a section")
+      raise ConfigError(f"unknown config key {key!r}{hint}")
+    node = node[part]
 
 
 def apply_overrides(config: ml_collections.ConfigDict, overrides: Sequence[str]
@@ -43,12 +64,13 @@ def apply_overrides(config: ml_collections.ConfigDict, overrides: Sequence[str]
   for item in overrides:
     key, sep, value = item.partition("=")
     if not sep:
-      raise ValueError(f"override must be key=value, got {item!r}")
+      raise ConfigError(f"override must be key=value, got {item!r}")
     key = key.strip().removeprefix("--config.").removeprefix("config.")
+    _check_key(config, key)
     try:
       config.update_from_flattened_dict({key: _parse_value(value)})
     except (KeyError, AttributeError, TypeError) as e:
-      raise ValueError(f"cannot apply override {item!r}: {e}") from e
+      raise ConfigError(f"cannot apply override {item!r}: {e}") from e
   return config
 
 

@@ -92,6 +92,33 @@ def logical_shardings(boxed_tree: Any, mesh: Mesh, rules=LOGICAL_RULES) -> Any:
   return nn.logical_to_mesh_sharding(specs, mesh, rules)
 
 
+_AXIS_SOURCES = {"heads": "model.num_heads", "embed": "model.hidden_size",
+                 "mlp": "model.hidden_size x model.mlp_ratio",
+                 "modulation": "model.hidden_size x 6"}
+
+
+def check_shardable(boxed_tree: Any, mesh: Mesh, rules=LOGICAL_RULES) -> None:
+  """ValueError, before anything compiles, naming the first parameter whose dimension the mesh
+  axes its logical axis maps to cannot split evenly (e.g. 4 heads over a 3-way ``tensor``)."""
+  rule_of = dict(rules)
+  leaves = jax.tree_util.tree_leaves_with_path(
+      boxed_tree, is_leaf=lambda x: isinstance(x, nn.LogicallyPartitioned))
+  for path, leaf in leaves:
+    if not isinstance(leaf, nn.LogicallyPartitioned):
+      continue
+    for size, name in zip(leaf.value.shape, leaf.names):
+      axes = rule_of.get(name)
+      axes = (axes,) if isinstance(axes, str) else tuple(axes or ())
+      ways = int(np.prod([mesh.shape[a] for a in axes if a in mesh.shape]))
+      if ways > 1 and size % ways:
+        source = f" ({_AXIS_SOURCES[name]})" if name in _AXIS_SOURCES else ""
+        raise ValueError(
+            f"the mesh {dict(mesh.shape)} cannot shard the model: parameter "
+            f"{jax.tree_util.keystr(path)} has {size} along its '{name}' axis{source}, which "
+            f"the mesh's {' x '.join(axes)} axis ({ways}) does not divide; choose config.mesh "
+            f"(data, fsdp, tensor) so that it does")
+
+
 def local_data_mesh() -> jax.sharding.Mesh:
   """A 1-D ``('data',)`` mesh over this process's devices, for inference: parameters replicated
   on it, batches of independent rollouts split over it."""

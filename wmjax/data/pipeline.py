@@ -5,6 +5,11 @@ sharding by process, weighted mixtures, normalisation and batching, checkpointab
                           resolution=(256, 320))]
   ds = training_pipeline(sources, [stats], batch_size=8, seed=0)
   it = iter(ds); batch = next(it); state = it.get_state()   # ... it.set_state(state)
+  later = iter(training_pipeline(sources, [stats], batch_size=8, seed=0, start=100))  # batch 100 on
+
+Batches are formed before the (optional) worker processes split the work, so batch ``k`` is a
+function of ``k`` alone: the same with any ``num_workers``, and a run resumed at step ``k``
+continues with ``start=k``.
 
 A batch is a dict of numpy arrays with a leading batch axis: ``frames`` float32
 ``[B, F, H, W, 3]`` in [-1, 1], ``actions`` float32 ``[B, F-1, A]`` normalised, ``instruction``
@@ -83,6 +88,14 @@ def frames_to_float(batch: dict[str, Any]) -> dict[str, Any]:
   return dict(batch, frames=frames.astype(np.float32))
 
 
+def _ignore_interrupts(worker_index: int, worker_count: int) -> None:
+  """Data workers leave Ctrl-C to the process that reads from them (a terminal sends it to the
+  whole process group), which then stops them itself after saving its checkpoint."""
+  del worker_index, worker_count
+  import signal
+  signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _check_compatible(sources: Sequence[WindowSource], action_dim: int) -> None:
   shapes = {(s.frames, s.resolution) for s in sources}
   if len(shapes) > 1:
@@ -98,13 +111,16 @@ def training_pipeline(sources: Sequence[WindowSource], stats: Sequence[ActionSta
                       shuffle: bool = True, repeat: bool = True, normalization: str = "mean_std",
                       action_dim: int | None = None, shard_index: int | None = None,
                       shard_count: int | None = None, num_workers: int = 0,
-                      drop_remainder: bool = True) -> grain.IterDataset:
+                      drop_remainder: bool = True, start: int = 0) -> grain.IterDataset:
   """Batches of this process's shard of a (weighted) mixture of window sources.
 
   Each source is sharded by process (``shard_index::shard_count``, default the JAX process),
   shuffled deterministically (reshuffled every epoch) and repeated, then sources are mixed by
-  ``weights`` (a mixture keeps only the standard keys). ``batch_size`` is per process. Iterators of the result have ``get_state`` /
-  ``set_state``.
+  ``weights`` (a mixture keeps only the standard keys). ``batch_size`` is per process. The
+  batches are formed on the random-access dataset, before ``num_workers`` processes split them
+  between themselves, so the sequence does not depend on ``num_workers``; ``start`` skips to batch
+  ``start`` at no cost (how a resumed run continues). Iterators of the result have
+  ``get_state`` / ``set_state``.
   """
   if not sources:
     raise ValueError("training_pipeline needs at least one source")
@@ -117,6 +133,8 @@ def training_pipeline(sources: Sequence[WindowSource], stats: Sequence[ActionSta
     shard_index, shard_count = jax.process_index(), jax.process_count()
   if not 0 <= shard_index < shard_count:
     raise ValueError(f"shard_index must be in [0, {shard_count}), got {shard_index}")
+  if start < 0:
+    raise ValueError(f"start must be a batch index >= 0, got {start}")
   action_dim = action_dim or max(s.spec.action_dim for s in sources)
   _check_compatible(sources, action_dim)
 
@@ -130,10 +148,15 @@ def training_pipeline(sources: Sequence[WindowSource], stats: Sequence[ActionSta
     members.append(ds.map(Normalize(source_stats, normalization, action_dim, i,
                                     keep_extras=len(sources) == 1)))
   mixed = members[0] if len(members) == 1 else grain.MapDataset.mix(members, weights)
-  batched = mixed.to_iter_dataset().batch(batch_size, drop_remainder=drop_remainder)
+  batches = mixed.batch(batch_size, drop_remainder=drop_remainder)[start:]
+  # Threads prefetch whole batches; the buffer holds about as many windows as grain's default.
+  buffered = max(2, min(64, 512 // batch_size))
+  batched = batches.to_iter_dataset(grain.ReadOptions(num_threads=min(16, buffered),
+                                                      prefetch_buffer_size=buffered))
   if num_workers > 0:
     from absl import flags
     if not flags.FLAGS.is_parsed():
       flags.FLAGS.mark_as_parsed()  # grain workers read absl flags
-    batched = batched.mp_prefetch(grain.MultiprocessingOptions(num_workers=num_workers))
+    batched = batched.mp_prefetch(grain.MultiprocessingOptions(num_workers=num_workers),
+                                  worker_init_fn=_ignore_interrupts)
   return batched.map(frames_to_float)

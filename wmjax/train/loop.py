@@ -3,23 +3,37 @@
 Per step: next batch of this process's data shard -> global sharded arrays -> jitted train step.
 Around it: a progress bar (rate, ETA), TensorBoard scalars and ``metrics.jsonl``, periodic
 evaluation (validation loss and rollout PSNR on held-out windows, exact square-position error on
-the gridworld) with a ground truth | prediction GIF, async checkpoints of state + data iterator +
-config + action statistics, resume from the latest checkpoint, a clean stop on SIGTERM, and a
-stop with a clear message on a NaN / inf loss that leaves the last good checkpoint intact.
+the gridworld) with a ground truth | prediction GIF, and async checkpoints of state + config +
+action statistics (the data position is the step).
+
+A run is never lost or silently changed:
+- one trainer per workdir (``train.lock``, see :mod:`wmjax.train.workdir`);
+- resume from the newest checkpoint that reads back (a damaged newer one is moved aside with a
+  warning), only with the config it was trained with up to the changes :mod:`wmjax.train.resume`
+  accepts; ``config.json`` is written after the restore, ``metrics.jsonl`` cut back to its step;
+- a checkpoint is saved only if the whole train state is finite; a NaN / inf loss or state stops
+  with a message that names the last good checkpoint;
+- a background save that fails stops training at the next step, with a one-line message;
+- SIGTERM or Ctrl-C save a checkpoint and stop (``wmjax train`` exits 128 + the signal number).
 
 Workdir layout: ``checkpoints/``, ``tensorboard/``, ``metrics.jsonl``, ``samples/*.gif``,
-``config.json``, and at the end ``metrics.json`` and ``rollout.gif``.
+``config.json``, ``config_changes.jsonl`` (changes accepted on resume), and at the end
+``metrics.json`` and ``rollout.gif``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
+import logging
 import os
 import signal
+import sys
+import threading
 import time
-from typing import Any
+from typing import Any, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -33,14 +47,22 @@ from wmjax.diffusion import diffusion_loss
 from wmjax.eval.protocols import frame_metrics
 from wmjax.eval.video import comparison, stack_rows, write_video
 from wmjax.rollout import WorldModel, rollout
-from wmjax.train.checkpoint import Checkpointer
 from wmjax.train import memory
+from wmjax.train.checkpoint import CheckpointError, Checkpointer, shapes_by_path
+from wmjax.train.errors import RunError
 from wmjax.train.data import build_data, eval_windows
+from wmjax.train.resume import check_resume
 from wmjax.train.step import ShardedTrainer
+from wmjax.train.workdir import (METRICS_LOG, WorkdirLock, record_config_changes,
+                                 truncate_metrics_log)
 
 
-class NonFiniteLossError(RuntimeError):
-  """The loss became NaN or inf; training stopped without saving the bad state."""
+LIBRARY_LOG = "train.log"  # orbax's and asyncio's warnings and errors during training
+
+
+class NonFiniteLossError(RunError):
+  """The loss or the train state became NaN or inf; training stopped without saving the bad
+  state."""
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -96,28 +118,144 @@ def _batch_fingerprint(batch: dict[str, np.ndarray]) -> str:
   return hashlib.sha1(ids.tobytes()).hexdigest()[:16]
 
 
+@jax.jit
+def _all_finite(state: Any) -> jax.Array:
+  leaves = [x for x in jax.tree.leaves(state) if jnp.issubdtype(x.dtype, jnp.inexact)]
+  return jnp.all(jnp.stack([jnp.isfinite(x).all() for x in leaves]))
+
+
+class _QuietFileHandler(logging.FileHandler):
+  """A log file that gives up silently when it cannot be written (the disk it is on may be the
+  full one the run is reporting)."""
+
+  def handleError(self, record):
+    del record
+
+
+@contextlib.contextmanager
+def _library_logs_to(path: str, names=("absl", "asyncio")):
+  """Send the warnings and errors that orbax (through absl logging) and asyncio log while the run
+  trains to ``path`` instead of the console: a failed save logs a traceback from every thread it
+  touched, hundreds of lines that would bury the one-line reason the run stopped."""
+  handler = _QuietFileHandler(path, delay=True)
+  handler.setLevel(logging.WARNING)
+  handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+  loggers = [logging.getLogger(name) for name in names]
+  previous = [logger.propagate for logger in loggers]
+  for logger in loggers:
+    logger.addHandler(handler)
+    logger.propagate = False
+  try:
+    yield
+  finally:
+    for logger, propagate in zip(loggers, previous):
+      logger.removeHandler(handler)
+      logger.propagate = propagate
+    handler.close()
+
+
 class _StopFlag:
-  """Set by SIGTERM: the loop saves a checkpoint and exits cleanly."""
+  """SIGTERM and Ctrl-C (SIGINT) ask the loop to save a checkpoint and stop after the current
+  step; a second Ctrl-C stops at once, without saving."""
+
+  SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
   def __init__(self):
-    self.requested = False
-    self._previous = signal.signal(signal.SIGTERM, self._handle)
+    self.signum: int | None = None
+    self._previous = {}
+    if threading.current_thread() is threading.main_thread():
+      self._previous = {s: signal.signal(s, self._handle) for s in self.SIGNALS}
 
   def _handle(self, signum, frame):
-    del signum, frame
-    self.requested = True
+    del frame
+    if self.signum == signal.SIGINT and signum == signal.SIGINT:
+      raise KeyboardInterrupt
+    self.signum = signum
+    if signum == signal.SIGINT:
+      sys.stderr.write("\nCtrl-C: saving a checkpoint after this step, then stopping (press "
+                       "Ctrl-C again to stop at once without saving)\n")
+
+  @property
+  def requested(self) -> bool:
+    return self.signum is not None
 
   def restore(self):
-    signal.signal(signal.SIGTERM, self._previous)
+    for signum, handler in self._previous.items():
+      signal.signal(signum, handler)
 
 
-def train(config: ml_collections.ConfigDict, workdir: str) -> tuple[Any, dict]:
-  """Train (or resume) in ``workdir``; returns the final train state and evaluation metrics."""
+def _resume(checkpoints: Checkpointer, trainer: ShardedTrainer, config: ml_collections.ConfigDict,
+            workdir: str, allow: Sequence[str], is_chief: bool):
+  """(state, step, accepted config changes) from the newest checkpoint that reads back, or
+  None when there is none. A damaged newer checkpoint is moved to ``WORKDIR/damaged_checkpoints``
+  (kept, never deleted) with a warning; a config that may not resume stops the run."""
+  wanted = shapes_by_path(trainer.abstract_state)
+  damaged = []
+
+  def unreadable(step, error):
+    damaged.append((step, error))
+    print(f"WARNING: {error}", file=sys.stderr, flush=True)
+
+  for step in reversed(checkpoints.all_steps()):
+    try:
+      saved = checkpoints.read_config(step)
+      stored = checkpoints.stored_shapes(step)
+    except CheckpointError as e:
+      unreadable(step, e)
+      continue
+    changes, accepted_by = check_resume(step, saved, config, stored, wanted, allow)
+    try:
+      state = checkpoints.restore(step, trainer.abstract_state)
+    except CheckpointError as e:
+      unreadable(step, e)
+      continue
+    if damaged and jax.process_count() > 1:
+      raise CheckpointError(f"{damaged[0][1]}. Checkpoint {step} is intact: move "
+                            f"{checkpoints.directory}/{damaged[0][0]} (and any newer) aside and "
+                            f"rerun to resume from it.")
+    for bad, _ in damaged:
+      where = checkpoints.set_aside(bad, os.path.join(workdir, "damaged_checkpoints"))
+      print(f"WARNING: checkpoint {bad} is damaged and was moved to {where}; resuming from "
+            f"checkpoint {step}, the newest intact one.", file=sys.stderr, flush=True)
+    if changes and is_chief:
+      record_config_changes(workdir, step, changes, accepted_by)
+      print("config changes accepted on resume: " + ", ".join(
+          f"{k} {old!r} -> {new!r}" for k, (old, new) in changes.items()), flush=True)
+    return state, step
+  if damaged:
+    raise CheckpointError(
+        "no checkpoint in " + checkpoints.directory + " can be read: " + "; ".join(
+            str(e) for _, e in damaged) + ". Move the directory aside to start afresh.")
+  return None
+
+
+def train(config: ml_collections.ConfigDict, workdir: str, *,
+          allow_config_change: Sequence[str] = ()) -> tuple[Any, dict]:
+  """Train (or resume) in ``workdir``; returns the final train state and evaluation metrics.
+
+  A resumed run must match the config of its checkpoint except for
+  :data:`wmjax.train.resume.SAFE_ON_RESUME` and the keys (or sections) named in
+  ``allow_config_change``; see :mod:`wmjax.train.resume`. Stopped by SIGTERM or Ctrl-C, it saves
+  a checkpoint (if the state is finite) and returns ``{'step', 'stopped', 'signal'}`` as metrics.
+  """
+  workdir = os.path.abspath(os.path.expanduser(workdir))
+  os.makedirs(workdir, exist_ok=True)
+  lock = WorkdirLock(workdir) if jax.process_index() == 0 else None
+  if lock is not None:
+    lock.acquire()
+  try:
+    with _library_logs_to(os.path.join(workdir, LIBRARY_LOG)):
+      return _train(config, workdir, tuple(allow_config_change))
+  finally:
+    if lock is not None:
+      lock.release()
+
+
+def _train(config: ml_collections.ConfigDict, workdir: str,
+           allow: tuple[str, ...]) -> tuple[Any, dict]:
   from tensorboardX import SummaryWriter
   from tqdm import tqdm
 
-  workdir = os.path.abspath(os.path.expanduser(workdir))
-  os.makedirs(workdir, exist_ok=True)
   is_chief = jax.process_index() == 0
   data = build_data(config)
   mesh = parallel.make_mesh(config.mesh)
@@ -128,55 +266,75 @@ def train(config: ml_collections.ConfigDict, workdir: str) -> tuple[Any, dict]:
   if is_chief:
     print(memory.describe(memory.estimate(config, jax.device_count())), flush=True)
   world_model = WorldModel.from_config(config)
-  trainer = ShardedTrainer(world_model, config, mesh, tuple(config.frame_shape), config.data.frames)
-  iterator = iter(training_pipeline(
-      [m.train for m in data.members], [m.stats for m in data.members],
-      weights=[m.weight for m in data.members],
-      batch_size=config.batch_size // jax.process_count(),
-      seed=config.seed, normalization=config.data.normalization,
-      action_dim=config.model.action_dim, num_workers=config.data.num_workers))
-  checkpoints = Checkpointer(os.path.join(workdir, "checkpoints"), config.train.max_checkpoints)
+  frame_shape, frames = tuple(config.frame_shape), config.data.frames
+  parallel.check_shardable(
+      jax.eval_shape(lambda: world_model.init(jax.random.key(0), frame_shape, frames)), mesh)
+  trainer = ShardedTrainer(world_model, config, mesh, frame_shape, frames)
   config_dict, stats_dict = json.loads(config.to_json()), data.stats_dict()
-  if is_chief:
-    with open(os.path.join(workdir, "config.json"), "w") as f:
-      f.write(config.to_json(indent=2))
-
-  start = checkpoints.latest_step()
-  if start is None:
-    state, start = trainer.init(jax.random.key(config.seed)), 0
-  else:
-    state, _, _ = checkpoints.restore(start, trainer.abstract_state, iterator)
-    print(f"resumed from step {start} in {checkpoints.directory}", flush=True)
-  windows = eval_windows(data, config)
-  writer = SummaryWriter(os.path.join(workdir, "tensorboard")) if is_chief else None
-  log = open(os.path.join(workdir, "metrics.jsonl"), "a") if is_chief else None
-  stop = _StopFlag()
   num_steps, train_cfg = config.train.num_steps, config.train
   # RGB batches -> latents on the device (unless they were pre-encoded)
   encode_frames = not data.latents and not isinstance(data.codec, PixelCodec)
   encode_key = jax.random.key(config.seed + 1)
-  last_good = start
-  step = start
-
-  def save(step):
-    nonlocal last_good
-    checkpoints.save(step, state, iterator, config_dict, stats_dict)
-    last_good = step
-
-  def check_finite(loss, step):
-    if not np.isfinite(loss):
-      checkpoints.wait()
-      raise NonFiniteLossError(
-          f"loss is {loss} at step {step}; training stopped. The last good checkpoint (step "
-          f"{last_good}) in {checkpoints.directory} is intact. Lower optim.learning_rate or "
-          f"raise optim.grad_clip and resume.")
-
+  checkpoints = Checkpointer(os.path.join(workdir, "checkpoints"), train_cfg.max_checkpoints)
+  writer = log = iterator = bar = None
+  stop = _StopFlag()
   try:
+    resumed = _resume(checkpoints, trainer, config, workdir, allow, is_chief)
+    if resumed is None:
+      state, start = trainer.init(jax.random.key(config.seed)), 0
+    else:
+      state, start = resumed
+      print(f"resumed from step {start} in {checkpoints.directory}", flush=True)
+    # batch k is a function of k alone, so the data reads on from the step
+    iterator = iter(training_pipeline(
+        [m.train for m in data.members], [m.stats for m in data.members],
+        weights=[m.weight for m in data.members],
+        batch_size=config.batch_size // jax.process_count(),
+        seed=config.seed, normalization=config.data.normalization,
+        action_dim=config.model.action_dim, num_workers=config.data.num_workers, start=start))
+    windows = eval_windows(data, config)
+    if is_chief:
+      with open(os.path.join(workdir, "config.json"), "w") as f:
+        f.write(config.to_json(indent=2))
+      truncate_metrics_log(workdir, start)
+      # events of an earlier attempt past the resumed step are hidden from TensorBoard
+      writer = SummaryWriter(os.path.join(workdir, "tensorboard"), purge_step=start or None)
+      log = open(os.path.join(workdir, METRICS_LOG), "a")
+    step = start
+    step_metrics = None
+
+    def stop_message(problem: str) -> str:
+      checkpoints.wait()
+      kept = (f"The last good checkpoint (step {checkpoints.last_saved}) in "
+              f"{checkpoints.directory} is intact" if checkpoints.last_saved is not None else
+              f"No checkpoint was saved yet in {checkpoints.directory}")
+      clip = config.optim.grad_clip
+      return (f"{problem}; training stopped. {kept}. Lower optim.learning_rate (now "
+              f"{config.optim.learning_rate:g}) or clip gradients harder (a smaller "
+              f"optim.grad_clip: now {clip:g}{', 0 = off' if not clip else ''}) and rerun"
+              + (" with --allow_config_change=optim" if checkpoints.last_saved is not None
+                 else "") + ".")
+
+    def save(step):
+      if not bool(_all_finite(state)):
+        raise NonFiniteLossError(stop_message(
+            f"the train state at step {step} holds NaN or inf values and was not saved"))
+      checkpoints.save(step, state, config_dict, stats_dict)
+
+    def check_finite(loss, step):
+      if not np.isfinite(loss):
+        raise NonFiniteLossError(stop_message(f"loss is {loss} at step {step}"))
+
     bar = tqdm(total=num_steps, initial=start, disable=not is_chief, desc="train",
                dynamic_ncols=True)
     tick = time.perf_counter()
     while step < num_steps and not stop.requested:
-      batch = next(iterator)
+      try:
+        batch = next(iterator)
+      except Exception:
+        if stop.requested:  # the signal reached the data workers too: save what there is
+          break
+        raise
       global_batch = parallel.global_batch({k: batch[k] for k in ("frames", "actions")}, mesh)
       frames = global_batch["frames"]
       if encode_frames:  # the latents keep the batch's sharding
@@ -185,6 +343,7 @@ def train(config: ml_collections.ConfigDict, workdir: str) -> tuple[Any, dict]:
       state, step_metrics = trainer.step(state, frames, global_batch["actions"])
       step += 1
       bar.update(1)
+      checkpoints.poll()  # a background save that failed stops the run now
       if step % train_cfg.log_every == 0 or step % train_cfg.checkpoint_every == 0:
         scalars = {k: float(v) for k, v in step_metrics.items()}
         check_finite(scalars["loss"], step)
@@ -209,13 +368,21 @@ def train(config: ml_collections.ConfigDict, workdir: str) -> tuple[Any, dict]:
           write_samples(os.path.join(workdir, "samples", f"step_{step:07d}.gif"), truth,
                         predicted)
           bar.write(f"step {step}: " + ", ".join(f"{k}={v:.4g}" for k, v in result.items()))
-    if stop.requested:
-      if step != last_good:
-        save(step)
+    if stop.requested and step < num_steps:
+      name = signal.Signals(stop.signum).name
       checkpoints.wait()
-      bar.write(f"SIGTERM: saved step {step} to {checkpoints.directory}; exiting")
-      return state, {"step": step, "stopped": "SIGTERM"}
-    if step != last_good:
+      if step != checkpoints.last_saved and step > start:
+        if step_metrics is not None:
+          check_finite(float(step_metrics["loss"]), step)
+        save(step)
+        checkpoints.wait()
+      saved = (f"saved step {step} to {checkpoints.directory}"
+               if checkpoints.last_saved == step else "no step was trained, nothing to save")
+      bar.write(f"{name}: {saved}; stopped before step {num_steps} (rerun the same command to "
+                f"resume)")
+      return state, {"step": step, "stopped": name, "signal": int(stop.signum)}
+    checkpoints.wait()
+    if step != checkpoints.last_saved:
       check_finite(float(step_metrics["loss"]), step)
       save(step)
     checkpoints.wait()
@@ -232,7 +399,18 @@ def train(config: ml_collections.ConfigDict, workdir: str) -> tuple[Any, dict]:
     return state, result
   finally:
     stop.restore()
-    checkpoints.close()
-    if writer is not None:
-      writer.close()
-      log.close()
+    failing = sys.exc_info()[0] is not None
+    try:
+      checkpoints.close()
+    except CheckpointError:
+      if not failing:
+        raise
+    finally:
+      if bar is not None:
+        bar.close()
+      if iterator is not None and hasattr(iterator, "close"):
+        iterator.close()
+      if writer is not None:
+        writer.close()
+      if log is not None:
+        log.close()

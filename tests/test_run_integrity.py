@@ -1,0 +1,402 @@
+"""A run is never lost or silently changed (issue 20): finite checkpoints only, config checks on
+resume, damaged checkpoints, failed saves, the workdir lock, signals and exit codes, and inputs
+refused at the command line. One tiny trained workdir is shared; each test copies it."""
+
+import errno
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import orbax.checkpoint as ocp
+import pytest
+
+from conftest import tiny_config
+from wmjax import cli, parallel
+from wmjax.config import ConfigError, load_config
+from wmjax.data import gridworld
+from wmjax.data.pipeline import WindowSource, training_pipeline
+from wmjax.data.sources import ArrayRecordEpisodes, action_stats
+from wmjax.eval import inputs
+from wmjax.rollout import WorldModel
+from wmjax.train.checkpoint import CheckpointError, Checkpointer, load_model
+from wmjax.train.loop import NonFiniteLossError, train
+from wmjax.train.resume import ConfigChangeError, check_resume
+from wmjax.train.step import ShardedTrainer
+from wmjax.train.workdir import LOCK_NAME, WorkdirLock, WorkdirLockedError
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _values(data_dir, **extra):
+  values = {
+      "data.data_dir": repr(str(data_dir)), "data.gridworld.train_episodes": 16,
+      "data.gridworld.test_episodes": 2, "data.gridworld.episode_length": 12,
+      "model.patch_size": 4, "batch_size": 8, "train.num_steps": 4, "train.log_every": 1,
+      "train.checkpoint_every": 2, "train.eval_every": 1000, "train.eval_windows": 2,
+      "sampling.num_steps": 2, "optim.warmup_steps": 1, "optim.total_steps": 4}
+  values.update(extra)
+  return [f"{k}={v}" for k, v in values.items()]
+
+
+def _config(data_dir, **extra):
+  return tiny_config("gridworld.py", *_values(data_dir, **extra))
+
+
+def _cli_train(workdir, data_dir, *flags, **extra):
+  """``wmjax train`` in this process; returns its exit code."""
+  overrides = [f"--config.{v}" for v in ("model.depth=2", "model.hidden_size=32",
+                                         "model.num_heads=2", "model.num_frames=8")]
+  overrides += [f"--config.{v}" for v in _values(data_dir, **extra)]
+  return cli.main(["train", "--config", os.path.join(ROOT, "configs", "gridworld.py"),
+                   "--workdir", str(workdir)] + overrides + list(flags))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _compilation_cache(tmp_path_factory):
+  """Most tests here train the same tiny model: compile it once for the module."""
+  names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
+           "jax_persistent_cache_min_entry_size_bytes")
+  previous = {name: getattr(jax.config, name) for name in names}
+  jax.config.update("jax_compilation_cache_dir", str(tmp_path_factory.mktemp("xla_cache")))
+  jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+  jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+  yield
+  for name, value in previous.items():
+    jax.config.update(name, value)
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+  path = tmp_path_factory.mktemp("data")
+  gridworld.prepare(str(path), gridworld.GridworldConfig(train_episodes=16, test_episodes=2,
+                                                         episode_length=12))
+  return path
+
+
+@pytest.fixture(scope="module")
+def trained(data_dir, tmp_path_factory):
+  """4 steps, checkpoints 2 and 4, every step in metrics.jsonl."""
+  workdir = tmp_path_factory.mktemp("trained") / "run"
+  train(_config(data_dir), str(workdir))
+  return workdir
+
+
+@pytest.fixture
+def run(trained, tmp_path):
+  """A copy of the trained workdir to damage or resume."""
+  shutil.copytree(trained, tmp_path / "run")
+  return tmp_path / "run"
+
+
+def _steps(workdir):
+  return sorted(int(p) for p in os.listdir(os.path.join(workdir, "checkpoints")) if p.isdigit())
+
+
+def _logged(workdir):
+  with open(os.path.join(workdir, "metrics.jsonl")) as f:
+    return [json.loads(line) for line in f]
+
+
+def _patched_step(nan_from=None, then=None):
+  """A train step whose parameters become NaN from step ``nan_from`` on (as a diverged run's);
+  ``then(step)`` runs after every step."""
+  real_step = ShardedTrainer.step
+
+  def step(self, state, frames, actions):
+    state, metrics = real_step(self, state, frames, actions)
+    if nan_from is not None and int(state.step) >= nan_from:
+      state = state.replace(params=jax.tree.map(lambda p: p * jnp.nan, state.params))
+    if then is not None:
+      then(int(state.step))
+    return state, metrics
+
+  return step
+
+
+# ----------------------------------------------------------------------------- 1, 8, 10
+
+
+def test_sigterm_never_saves_a_nan_state(data_dir, tmp_path, monkeypatch):
+  """1: SIGTERM after the state went NaN (no loss was checked: log_every is large) saves
+  nothing, and the message does not claim a checkpoint that does not exist (8)."""
+  def terminate(step):
+    if step == 3:
+      os.kill(os.getpid(), signal.SIGTERM)
+
+  monkeypatch.setattr(ShardedTrainer, "step", _patched_step(nan_from=3, then=terminate))
+  config = _config(data_dir, **{"train.num_steps": 50, "train.log_every": 1000,
+                                "train.checkpoint_every": 1000})
+  with pytest.raises(NonFiniteLossError, match=r"state at step 3 holds NaN or inf values and was "
+                     r"not saved.*No checkpoint was saved yet") as error:
+    train(config, str(tmp_path))
+  assert "last good checkpoint" not in str(error.value)
+  assert _steps(tmp_path) == []
+
+
+def test_nan_on_a_fresh_run_names_no_checkpoint_and_advises_tighter_clipping(data_dir, tmp_path,
+                                                                             monkeypatch):
+  """8: the loss goes NaN before any checkpoint: the advice is a smaller grad_clip."""
+  real_step = ShardedTrainer.step
+
+  def step(self, state, frames, actions):
+    state, metrics = real_step(self, state, frames, actions)
+    return state, dict(metrics, loss=metrics["loss"] * jnp.nan)
+
+  monkeypatch.setattr(ShardedTrainer, "step", step)
+  with pytest.raises(NonFiniteLossError) as error:
+    train(_config(data_dir), str(tmp_path))
+  message = str(error.value)
+  assert "loss is nan at step 1" in message and "No checkpoint was saved yet" in message
+  assert "a smaller optim.grad_clip" in message and "raise optim.grad_clip" not in message
+  assert "step 0" not in message
+
+
+def test_ctrl_c_saves_and_exits_130(data_dir, tmp_path, monkeypatch):
+  """10: Ctrl-C (SIGINT) saves the current step like SIGTERM and exits 128 + 2."""
+  def interrupt(step):
+    if step == 3:
+      os.kill(os.getpid(), signal.SIGINT)
+
+  monkeypatch.setattr(ShardedTrainer, "step", _patched_step(then=interrupt))
+  handler = signal.getsignal(signal.SIGINT)
+  assert _cli_train(tmp_path, data_dir, **{"train.num_steps": 50}) == 130
+  assert _steps(tmp_path) == [2, 3]
+  assert signal.getsignal(signal.SIGINT) is handler
+
+
+# ----------------------------------------------------------------------------- 2, 3, 12
+
+
+def test_resume_refuses_a_changed_config_and_keeps_config_json(run, data_dir):
+  """2: a changed objective is refused with the differing key; config.json is untouched."""
+  before = (run / "config.json").read_text()
+  with pytest.raises(ConfigChangeError, match=r"(?s)diffusion.prediction: 'v' \(checkpoint\) -> "
+                     r"'eps' \(now\).*--allow_config_change=diffusion.prediction"):
+    train(_config(data_dir, **{"diffusion.prediction": "eps"}), str(run))
+  assert (run / "config.json").read_text() == before
+  assert _steps(run) == [2, 4]
+
+
+def test_config_changes_safe_on_resume_or_named_are_accepted_and_recorded(run, data_dir):
+  """2: train.num_steps is always accepted, a named change is accepted, both are recorded."""
+  config = _config(data_dir, **{"optim.learning_rate": 1e-3, "train.num_steps": 5})
+  train(config, str(run), allow_config_change=["optim"])
+  record = json.loads((run / "config_changes.jsonl").read_text())
+  assert record["step"] == 4 and record["changes"]["train.num_steps"]["accepted"] == "safe"
+  assert record["changes"]["optim.learning_rate"] == {"checkpoint": 3e-3, "now": 1e-3,
+                                                      "accepted": "optim"}
+  assert json.loads((run / "config.json").read_text())["optim"]["learning_rate"] == 1e-3
+  assert _steps(run) == [2, 4, 5]
+
+
+def test_shape_change_on_resume_is_one_clear_error(run, data_dir, capfd):
+  """3: a wider model stops at once with one message naming the key, no traceback."""
+  assert _cli_train(run, data_dir, **{"model.hidden_size": 64}) == 1
+  err = capfd.readouterr().err
+  message = err[err.index("wmjax train:"):]
+  assert "model.hidden_size: 32 (checkpoint) -> 64 (now)" in message
+  assert "Traceback" not in err and "Event loop is closed" not in err
+  assert len(message.strip().splitlines()) <= 4
+
+
+def test_unknown_config_keys_and_unshardable_meshes_fail_early(data_dir, tmp_path, capsys):
+  """12: a misspelt key names the right one; a mesh that cannot split the heads is refused
+  before compilation; --help documents overrides and resuming."""
+  with pytest.raises(ConfigError, match=r"unknown config key 'model.depht'; did you mean "
+                     r"model.depth\?"):
+    load_config(os.path.join(ROOT, "configs", "gridworld.py"), ["model.depht=3"])
+  config = _config(data_dir, mesh=(2, 1, 4))  # 2 heads over a 4-way tensor axis
+  with pytest.raises(ValueError, match=r"'heads' axis \(model.num_heads\).*tensor axis \(4\)"):
+    train(config, str(tmp_path))
+  wm = WorldModel.from_config(tiny_config("gridworld.py", "model.num_heads=4"))
+  abstract = jax.eval_shape(lambda: wm.init(jax.random.key(0), (16, 16, 3), 6))
+  with pytest.raises(ValueError, match="does not divide"):
+    parallel.check_shardable(abstract, parallel.make_mesh((2, 1, 3), jax.devices()[:6]))
+  for command in ("train", "evaluate", "rollout"):
+    with pytest.raises(SystemExit):
+      cli.main([command, "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--config.KEY=VALUE" in text, command
+  with pytest.raises(SystemExit):
+    cli.main(["train", "--help"])
+  text = " ".join(capsys.readouterr().out.split())
+  assert "train.num_steps, train.log_every, train.eval_every" in text and "143 / 130" in text
+
+
+# ----------------------------------------------------------------------------- 4
+
+
+def test_a_failed_background_save_stops_training_at_once(data_dir, tmp_path, monkeypatch):
+  """4: the disk fills up while checkpoint 4 is written in the background: training stops
+  before the next checkpoint is due, with a one-line message; checkpoint 2 stays, the partial
+  write is removed."""
+  real_save = ocp.JsonCheckpointHandler._save_fn
+
+  async def full_disk(self, x, directory):
+    if "4.orbax-checkpoint-tmp" in str(directory):
+      raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    return await real_save(self, x, directory)
+
+  monkeypatch.setattr(ocp.JsonCheckpointHandler, "_save_fn", full_disk)
+  real_step = ShardedTrainer.step
+
+  def slow_step(self, state, frames, actions):  # leave the failing save time to finish
+    if int(state.step) >= 4:
+      import time
+      time.sleep(0.5)
+    return real_step(self, state, frames, actions)
+
+  monkeypatch.setattr(ShardedTrainer, "step", slow_step)
+  config = _config(data_dir, **{"train.num_steps": 16})
+  with pytest.raises(CheckpointError, match=r"saving checkpoint 4 .* failed: the disk is full "
+                     r"\(No space left on device.*checkpoint 2 is intact") as error:
+    train(config, str(tmp_path))
+  assert "\n" not in str(error.value)
+  assert max(row["step"] for row in _logged(tmp_path)) < 6  # before the next save
+  assert _steps(tmp_path) == [2]
+  assert not [p for p in os.listdir(tmp_path / "checkpoints") if "tmp" in p]
+
+
+def test_checkpointer_poll_raises_once_the_failed_save_has_finished(tmp_path, monkeypatch):
+  real_save = ocp.JsonCheckpointHandler._save_fn
+
+  async def failing(self, x, directory):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+  checkpoints = Checkpointer(str(tmp_path / "ckpt"))
+  checkpoints.save(1, {"w": jnp.ones(3)}, {"a": 1}, {"b": 2})
+  checkpoints.wait()
+  monkeypatch.setattr(ocp.JsonCheckpointHandler, "_save_fn", failing)
+  checkpoints.save(2, {"w": jnp.ones(3)}, {"a": 1}, {"b": 2})
+  while checkpoints.manager.is_saving_in_progress():
+    pass
+  with pytest.raises(CheckpointError, match="checkpoint 1 is intact"):
+    checkpoints.poll()
+  monkeypatch.setattr(ocp.JsonCheckpointHandler, "_save_fn", real_save)
+  checkpoints.close()
+  assert checkpoints.all_steps() == [1]
+
+
+# ----------------------------------------------------------------------------- 5
+
+
+def test_damaged_latest_checkpoint_falls_back_with_a_warning(run, data_dir, capfd):
+  """5: a truncated array file of checkpoint 4: the run resumes from 2, says so naming both,
+  and keeps the damaged checkpoint aside; reading it for inference names the file and --step."""
+  data = sorted((run / "checkpoints" / "4" / "state" / "d").iterdir())[0]
+  data.write_bytes(data.read_bytes()[:50])
+  with pytest.raises(CheckpointError, match=r"checkpoint 4 cannot be read: .*checkpoints/4/state"
+                     r".*pass --step 2"):
+    load_model(str(run))
+  train(_config(data_dir), str(run))
+  err = capfd.readouterr().err
+  assert "checkpoint 4 cannot be read" in err and "resuming from checkpoint 2" in err
+  assert "Event loop is closed" not in err
+  assert _steps(run) == [2, 4] and (run / "damaged_checkpoints" / "4" / "state").is_dir()
+  assert load_model(str(run)).step == 4
+  (run / "checkpoints" / "2" / "config" / "metadata").write_text("")  # unreadable config
+  with pytest.raises(CheckpointError, match=r"checkpoints/2/config: JSONDecodeError.*--step 4"):
+    load_model(str(run), step=2)
+
+
+# ----------------------------------------------------------------------------- 6, 7, 9
+
+
+def test_batches_do_not_depend_on_the_number_of_workers(data_dir):
+  """6: batch k is the same with 0 or 2 worker processes, and ``start`` skips to it."""
+  builder_dir = gridworld.prepare(str(data_dir), gridworld.GridworldConfig(
+      train_episodes=16, test_episodes=2, episode_length=12))
+  source = WindowSource(ArrayRecordEpisodes(builder_dir, "train"), 6, 1, None)
+  stats = [action_stats(builder_dir)]
+
+  def batches(workers, start=0, n=5):
+    it = iter(training_pipeline([source], stats, batch_size=4, seed=2, shard_index=0,
+                                shard_count=1, num_workers=workers, start=start))
+    out = [next(it) for _ in range(n)]
+    it.close()
+    return out
+
+  sequential, parallel_workers, later = batches(0), batches(2), batches(2, start=3, n=2)
+  for a, b in zip(sequential, parallel_workers):
+    np.testing.assert_array_equal(a["frames"], b["frames"])
+  for a, b in zip(sequential[3:], later):
+    np.testing.assert_array_equal(a["episode"], b["episode"])
+    np.testing.assert_array_equal(a["start"], b["start"])
+
+
+def test_resume_with_more_workers_logs_each_step_once_and_cleans_up(run, data_dir):
+  """6, 7, 9: the run died after logging step 4 but before checkpoint 4 completed, leaving a
+  temporary checkpoint and a stale lock; it resumes from 2 with 2 data workers, reads the same
+  batches, logs steps 3 and 4 once, and removes the temporary directory."""
+  first = {row["step"]: row["batch"] for row in _logged(run)}
+  shutil.move(run / "checkpoints" / "4", run / "checkpoints" / "4.orbax-checkpoint-tmp")
+  dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                        capture_output=True, text=True).stdout.strip()
+  (run / LOCK_NAME).write_text(json.dumps({"pid": int(dead), "host": socket.gethostname()}))
+  train(_config(data_dir, **{"data.num_workers": 2}), str(run))
+  rows = _logged(run)
+  assert [row["step"] for row in rows] == [1, 2, 3, 4]
+  assert {row["step"]: row["batch"] for row in rows} == first
+  assert sorted(os.listdir(run / "checkpoints")) == ["2", "4"]
+  assert not (run / LOCK_NAME).exists()
+
+
+def test_a_second_trainer_in_the_workdir_is_refused(data_dir, tmp_path):
+  """7: while one process holds the workdir, another train stops at once naming it."""
+  holder = WorkdirLock(str(tmp_path))
+  holder.acquire()
+  try:
+    with pytest.raises(WorkdirLockedError, match=rf"in use by another `wmjax train` \(pid "
+                       rf"{os.getpid()} on {socket.gethostname()}"):
+      train(_config(data_dir), str(tmp_path))
+  finally:
+    holder.release()
+  assert not (tmp_path / "checkpoints").exists()
+
+
+# ----------------------------------------------------------------------------- 11
+
+
+def test_commands_refuse_unknown_flags_and_out_of_range_inputs(trained, tmp_path, capsys):
+  """11: unknown flags, --horizon 0, ambiguous float frames and absurd actions are errors."""
+  with pytest.raises(SystemExit) as exit_:
+    cli.main(["data", "stats", str(tmp_path), "--splt", "test"])
+  assert exit_.value.code == 2 and "unrecognized arguments: --splt" in capsys.readouterr().err
+  frames = np.zeros((1, 16, 16, 3), np.float32)
+  frames[0, 4:8, 4:8] = 1.0  # a white square on black, as a [0, 1] image
+  np.save(tmp_path / "frames.npy", frames)
+  np.save(tmp_path / "actions.npy", np.zeros((5, 4), np.float32))
+  base = ["rollout", "--workdir", str(trained), "--actions", str(tmp_path / "actions.npy"),
+          "--out", str(tmp_path / "out")]
+  with pytest.raises(ValueError, match=r"ambiguous.*--frame_range 0,1"):
+    cli.main(base + ["--frames", str(tmp_path / "frames.npy")])
+  as_uint8 = inputs.read_frames([str(tmp_path / "frames.npy")], (16, 16, 3), value_range="0,1")
+  assert as_uint8.max() == 255 and as_uint8.min() == 0
+  with pytest.raises(SystemExit, match=r"--horizon must be between 1 and 7.*got 0"):
+    cli.main(base + ["--frames", str(tmp_path / "frames.npy"), "--frame_range", "0,1",
+                     "--horizon", "0"])
+  np.save(tmp_path / "huge.npy", np.full((5, 4), 1e30, np.float32))
+  with pytest.raises(ValueError, match=r"action dimension 0 takes values in \[1e\+30, 1e\+30\], "
+                     r"but the model was trained on"):
+    cli.main(base[:3] + ["--actions", str(tmp_path / "huge.npy"), "--out", str(tmp_path / "o"),
+                         "--frames", str(tmp_path / "frames.npy"), "--frame_range", "0,1"])
+  assert not (tmp_path / "out").exists() and not (tmp_path / "o").exists()
+
+
+def test_check_resume_accepts_only_safe_or_named_changes():
+  saved = {"train": {"num_steps": 10}, "optim": {"learning_rate": 1e-3}, "mesh": [-1, 1, 1]}
+  now = {"train": {"num_steps": 20}, "optim": {"learning_rate": 1e-4}, "mesh": [1, 8, 1]}
+  with pytest.raises(ConfigChangeError, match=r"optim.learning_rate: 0.001 \(checkpoint\)"):
+    check_resume(3, saved, now, {}, {})
+  changes, by = check_resume(3, saved, now, {}, {}, allow=["optim.learning_rate"])
+  assert by == {"train.num_steps": "safe", "mesh": "safe",
+                "optim.learning_rate": "optim.learning_rate"}
+  with pytest.raises(ConfigChangeError, match="parameters' shapes"):
+    check_resume(3, saved, saved, {"w": (2, 3)}, {"w": (2, 4)}, allow=["model"])
