@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
+from jax.experimental.compilation_cache import compilation_cache
 
 from conftest import tiny_config
 from wmjax import cli, parallel
@@ -70,6 +71,7 @@ def _compilation_cache(tmp_path_factory):
   yield
   for name, value in previous.items():
     jax.config.update(name, value)
+  compilation_cache.reset_cache()  # later modules compile as before
 
 
 @pytest.fixture(scope="module")
@@ -212,6 +214,8 @@ def test_unknown_config_keys_and_unshardable_meshes_fail_early(data_dir, tmp_pat
   with pytest.raises(ConfigError, match=r"unknown config key 'model.depht'; did you mean "
                      r"model.depth\?"):
     load_config(os.path.join(ROOT, "configs", "gridworld.py"), ["model.depht=3"])
+  assert _cli_train(tmp_path, data_dir, "--config.model.depht=3") == 2
+  assert "did you mean model.depth?" in capsys.readouterr().err
   config = _config(data_dir, mesh=(2, 1, 4))  # 2 heads over a 4-way tensor axis
   with pytest.raises(ValueError, match=r"'heads' axis \(model.num_heads\).*tensor axis \(4\)"):
     train(config, str(tmp_path))
@@ -250,7 +254,7 @@ def test_a_failed_background_save_stops_training_at_once(data_dir, tmp_path, mon
   def slow_step(self, state, frames, actions):  # leave the failing save time to finish
     if int(state.step) >= 4:
       import time
-      time.sleep(0.5)
+      time.sleep(1.0)
     return real_step(self, state, frames, actions)
 
   monkeypatch.setattr(ShardedTrainer, "step", slow_step)

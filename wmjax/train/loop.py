@@ -298,7 +298,7 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
         f.write(config.to_json(indent=2))
       truncate_metrics_log(workdir, start)
       # events of an earlier attempt past the resumed step are hidden from TensorBoard
-      writer = SummaryWriter(os.path.join(workdir, "tensorboard"), purge_step=start or None)
+      writer = SummaryWriter(os.path.join(workdir, "tensorboard"), purge_step=start)
       log = open(os.path.join(workdir, METRICS_LOG), "a")
     step = start
     step_metrics = None
