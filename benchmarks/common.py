@@ -47,6 +47,32 @@ def median_seconds(fn, repeats: int) -> tuple[float, float]:
   return statistics.median(times), compile_s
 
 
+def compiled_memory(compiled) -> dict:
+  """Per-device GiB of a compiled program as XLA plans it (arguments, outputs, temporaries;
+  aliased = donated arguments reused as outputs), or {} where the backend gives none."""
+  analysis = compiled.memory_analysis()
+  if analysis is None:
+    return {}
+  gib = lambda n: round(n / 1024 ** 3, 3)
+  args, out, temp = (analysis.argument_size_in_bytes, analysis.output_size_in_bytes,
+                     analysis.temp_size_in_bytes)
+  alias = analysis.alias_size_in_bytes
+  return {"arguments_gib": gib(args), "outputs_gib": gib(out), "temp_gib": gib(temp),
+          "aliased_gib": gib(alias), "total_gib": gib(args + out - alias + temp)}
+
+
+def check_fits(memory: dict) -> None:
+  """SystemExit before the first step when the compiled program (``compiled_memory``) is larger
+  than what JAX's allocator may take on the first device (GPU / TPU; CPU reports no limit)."""
+  limit = (jax.devices()[0].memory_stats() or {}).get("bytes_limit")
+  if limit and memory and memory["total_gib"] * 1024 ** 3 > limit:
+    raise SystemExit(
+        f"the compiled step needs {memory['total_gib']:.1f} GiB per device (arguments "
+        f"{memory['arguments_gib']:.1f} + temporaries {memory['temp_gib']:.1f}) but the allocator "
+        f"may use {limit / 1024 ** 3:.1f} GiB: use a smaller --batch or model.remat='full' (or "
+        f"raise XLA_PYTHON_CLIENT_MEM_FRACTION)")
+
+
 def peak_memory() -> dict:
   """Peak memory so far: the first device's allocator peak (GPU / TPU; None on CPU, whose
   allocator keeps no statistics) and this process's peak resident set (host)."""

@@ -10,7 +10,8 @@ horizon (``sampling.num_steps=59`` costs what IRASim's PNDM-50 does: 59 network 
 ``sampling.kv_cache`` is recorded); frames/s counts generated frames over all B rollouts. Times
 are medians over ``--repeats`` runs after one compile run. ``--batch`` may be given several times:
 batches run in increasing order (so the allocator's peak after each is that batch's peak) and the
-result names the batch with the most frames/s.
+result names the batch with the most frames/s. ``--profile DIR`` traces one more rollout of each
+batch and adds its device time by op to the JSON (benchmarks/profile_ops.py).
 """
 
 from __future__ import annotations
@@ -22,13 +23,14 @@ import jax
 import jax.numpy as jnp
 
 from common import add_config_arguments, median_seconds, peak_memory, write_result
+from profile_ops import format_table, top_ops
 from wmjax.config import load_config
 from wmjax.nn import forward_flops
 from wmjax.rollout import WorldModel, block_flops, rollout
 
 
 def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,
-              repeats: int) -> dict:
+              repeats: int, profile_dir: str | None = None) -> dict:
   config = load_config(config_spec, overrides)
   wm = WorldModel.from_config(config)
   net = wm.network
@@ -47,6 +49,10 @@ def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,
   rollout_actions = jnp.zeros((batch, frames, net.action_dim))
   run = lambda: rollout(wm, params, context, rollout_actions, jax.random.key(3), horizon=h)
   rollout_s, rollout_compile_s = median_seconds(run, repeats)
+  profile = None
+  if profile_dir:
+    profile = top_ops(run, 1, f"{profile_dir}/b{batch}")
+    print(format_table(profile), flush=True)
   calls = wm.sampler.model_calls(h) * (2 if wm.guided else 1)
   blocks = -(-frames // h)
   flops_per_block = block_flops(wm, batch, c, h, shape[0], shape[1])
@@ -63,6 +69,7 @@ def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,
       "rollout_frames_per_s": batch * frames / rollout_s,
       "rollout_tflops_per_s": blocks * flops_per_block / rollout_s / 1e12,
       "kv_cache": wm.sampler.kv_cache, "attention_impl": net.attention_impl, **peak_memory(),
+      "profile": profile,
   }
 
 
@@ -73,9 +80,12 @@ def main():
                       help="rollouts per batch (repeatable; default 1)")
   parser.add_argument("--frames", type=int, default=15, help="frames to generate per rollout")
   parser.add_argument("--repeats", type=int, default=3)
+  parser.add_argument("--profile", default=None, metavar="DIR",
+                      help="trace one more rollout per batch into DIR; device time by op")
   args = parser.parse_args()
   batches = sorted(set(args.batch or [1]))
-  runs = [benchmark(args.config, args.set, b, args.frames, args.repeats) for b in batches]
+  runs = [benchmark(args.config, args.set, b, args.frames, args.repeats, args.profile)
+          for b in batches]
   best = max(runs, key=lambda r: r["rollout_frames_per_s"])
   result = dict(best, batches=runs) if len(runs) > 1 else best
   args.batch = best["batch"]

@@ -4,39 +4,46 @@
 # 32x32x16 SD3 latents, 9 context + 9 new frames), in bf16 with cuDNN attention on a GPU
 # (`attention_impl=auto`: splash on TPU).
 #
-#   benchmarks/gpu_suite.sh train    # training step time, MFU, peak memory
-#   benchmarks/gpu_suite.sh rollout  # frames/s at 59 calls per block (PNDM-50's cost) and DDIM-10
+#   benchmarks/gpu_suite.sh train    # train step at batch 16: time, MFU, compiled and peak memory,
+#                                    # device time by op (a jax.profiler trace of 3 steps)
+#   benchmarks/gpu_suite.sh rollout  # batch-8 rollouts: frames/s at 59 calls per block (PNDM-50's
+#                                    # cost) and at DDIM-10; WPE with and without the KV cache
 #   benchmarks/gpu_suite.sh all
 #
-# JSON goes to benchmarks/results/ (or $OUT_DIR). Each part fits in about 10 minutes on one H100.
+# Batch 16 with remat 'dots' compiles to 67.5 GiB (IRASim-XL/2) and 66.3 GiB (WPE-600M) per H100,
+# so JAX may take 95 % of the card here (its default, 75 %, is about 60 GiB); train_step.py stops
+# before the first step when the compiled step is larger than the device's memory.
+# JSON goes to benchmarks/results/ (or $OUT_DIR). Each part takes about 3 to 5 minutes on one H100.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out=${OUT_DIR:-benchmarks/results}
+traces=${TRACE_DIR:-${TMPDIR:-/tmp}/wmjax-traces}
 mkdir -p "$out"
+export XLA_PYTHON_CLIENT_MEM_FRACTION=${XLA_PYTHON_CLIENT_MEM_FRACTION:-0.95}
 platform=$(python -c "import jax; print(jax.default_backend())")
 fast=(--set "model.dtype='bfloat16'" --set "model.attention_impl='auto'")
 
 train() {
   # IRASim-XL/2 trains on 16-frame windows, WPE-600M on 20-frame ones (WPE table 5: batch 16).
   python benchmarks/train_step.py --config configs/irasim.py:XL "${fast[@]}" \
-      --set "model.remat='dots'" --batch 16 --steps 5 \
-      --out "$out/train_step-irasim-XL_2-bf16-$platform.json"
+      --set "model.remat='dots'" --batch 16 --steps 5 --profile "$traces/train-irasim" \
+      --out "$out/train_step-irasim-XL_2-bf16-b16-$platform.json"
   python benchmarks/train_step.py --config configs/wpe_600m.py "${fast[@]}" \
-      --set "model.remat='dots'" --batch 16 --steps 5 \
-      --out "$out/train_step-wpe-600m-bf16-$platform.json"
+      --set "model.remat='dots'" --batch 16 --steps 5 --profile "$traces/train-wpe" \
+      --out "$out/train_step-wpe-600m-bf16-b16-$platform.json"
 }
 
 rollout() {
   for steps in 59 10; do
     # IRASim chains 15-frame blocks after one context frame (bidirectional: no KV cache).
     python benchmarks/forward_rollout.py --config configs/irasim.py:XL "${fast[@]}" \
-        --set sampling.num_steps=$steps --batch 1 --batch 8 --batch 32 --frames 15 --repeats 2 \
+        --set sampling.num_steps=$steps --batch 8 --frames 15 --repeats 2 \
         --out "$out/forward_rollout-irasim-XL_2-bf16-steps$steps-$platform.json"
     # WPE: 9 context + 9 new frames, causal, with and without the temporal KV cache.
     for kv in True False; do
       python benchmarks/forward_rollout.py --config configs/wpe_600m.py "${fast[@]}" \
           --set sampling.num_steps=$steps --set sampling.kv_cache=$kv \
-          --batch 1 --batch 8 --batch 32 --frames 18 --repeats 2 \
+          --batch 8 --frames 18 --repeats 2 \
           --out "$out/forward_rollout-wpe-600m-bf16-steps$steps-kv$kv-$platform.json"
     done
   done

@@ -3,6 +3,9 @@
   python benchmarks/train_step.py --config configs/irasim.py:XL --batch 8 \
       --set model.dtype="'bfloat16'" [--set model.remat="'dots'"] [--peak_tflops 989]
 
+``--profile DIR`` traces three more steps with ``jax.profiler`` and adds the device time per op
+class and the top ops to the JSON (benchmarks/profile_ops.py).
+
 MFU = analytic model FLOPs of a train step (3 x forward: forward + backward, remat recomputation
 not counted) / step time / peak FLOP/s. The peak defaults to the dense bf16 figure of known
 accelerators (H100 / H200: 989 TFLOP/s, A100: 312); on CPU pass --peak_tflops or MFU is omitted.
@@ -12,13 +15,15 @@ Synthetic batches on a ('data', 'fsdp', 'tensor') mesh of all devices (--mesh, d
 from __future__ import annotations
 
 import argparse
+import gzip
 import statistics
 import time
 
 import jax
 import jax.numpy as jnp
 
-from common import add_config_arguments, peak_memory, write_result
+from common import add_config_arguments, check_fits, compiled_memory, peak_memory, write_result
+from profile_ops import format_table, top_ops
 from wmjax.config import load_config
 from wmjax.nn import forward_flops
 from wmjax.parallel import make_mesh
@@ -36,7 +41,8 @@ def peak_tflops(device_kind: str) -> float | None:
 
 
 def benchmark(spec: str, overrides: list[str], batch: int, frames: int | None, steps: int,
-              mesh_shape: tuple[int, int, int], peak: float | None) -> dict:
+              mesh_shape: tuple[int, int, int], peak: float | None,
+              profile_dir: str | None = None, hlo_path: str | None = None) -> dict:
   config = load_config(spec, overrides)
   wm = WorldModel.from_config(config)
   frames = frames or wm.network.num_frames
@@ -48,9 +54,16 @@ def benchmark(spec: str, overrides: list[str], batch: int, frames: int | None, s
   actions = jax.device_put(jnp.zeros((batch, frames - 1, wm.network.action_dim)),
                            trainer.batch_sharding)
   start = time.perf_counter()
+  compiled = trainer.compile(state, x, actions)
+  compile_s = time.perf_counter() - start
+  memory = compiled_memory(compiled)
+  check_fits(memory)
+  if hlo_path:
+    with gzip.open(hlo_path, "wt") as f:
+      f.write(compiled.as_text())
+  print(f"compiled in {compile_s:.0f} s: {memory}", flush=True)
   state, metrics = trainer.step(state, x, actions)
   jax.block_until_ready(metrics)
-  compile_s = time.perf_counter() - start
   times = []
   for _ in range(steps):
     start = time.perf_counter()
@@ -58,6 +71,14 @@ def benchmark(spec: str, overrides: list[str], batch: int, frames: int | None, s
     jax.block_until_ready(metrics)
     times.append(time.perf_counter() - start)
   step_s = statistics.median(times)
+  profile = None
+  if profile_dir:
+    def one_step():
+      nonlocal state, metrics
+      state, metrics = trainer.step(state, x, actions)
+      return metrics
+    profile = top_ops(one_step, 3, profile_dir)
+    print(format_table(profile), flush=True)
   flops = 3 * forward_flops(wm.network, batch, frames, shape[0], shape[1])
   device = jax.devices()[0].device_kind
   peak = peak or peak_tflops(device)
@@ -70,7 +91,8 @@ def benchmark(spec: str, overrides: list[str], batch: int, frames: int | None, s
       "step_ms": step_s * 1e3, "samples_per_s": batch / step_s,
       "train_tflop_per_step": flops / 1e12, "achieved_tflops_per_s": achieved,
       "peak_tflops_per_s": peak, "mfu": achieved / (peak * jax.device_count()) if peak else None,
-      "loss": float(metrics["loss"]), **peak_memory(),
+      "loss": float(metrics["loss"]), "compiled_memory": memory, **peak_memory(),
+      "profile": profile,
   }
 
 
@@ -82,10 +104,14 @@ def main():
   parser.add_argument("--steps", type=int, default=5)
   parser.add_argument("--mesh", default="-1,1,1", help="data,fsdp,tensor")
   parser.add_argument("--peak_tflops", type=float, default=None, help="per-device peak")
+  parser.add_argument("--profile", default=None, metavar="DIR",
+                      help="trace 3 steps into DIR and report device time by op")
+  parser.add_argument("--hlo", default=None, metavar="FILE.gz",
+                      help="write the compiled step's HLO text (gzipped), to look up profiled ops")
   args = parser.parse_args()
   mesh = tuple(int(v) for v in args.mesh.split(","))
   result = benchmark(args.config, args.set, args.batch, args.frames, args.steps, mesh,
-                     args.peak_tflops)
+                     args.peak_tflops, args.profile, args.hlo)
   write_result("train_step", result, args)
 
 

@@ -93,6 +93,22 @@ def test_cudnn_route_pads_the_head_dimension_and_keeps_the_scale(monkeypatch):
   assert calls == [(16, "cudnn"), (16, "cudnn")]
 
 
+def test_cudnn_backend_sends_short_sequences_to_xla(monkeypatch):
+  """Under ``cudnn`` the temporal axis (fewer keys than FLASH_MIN_KEYS) goes through XLA, the
+  spatial axis through the flash kernel."""
+  flash_lengths = []
+  monkeypatch.setattr(attention, "resolve_backend", lambda name, dtype: "cudnn")
+  monkeypatch.setattr(attention, "_cudnn",
+                      lambda q, k, v, causal: flash_lengths.append(k.shape[1]) or q)
+  short, long = 16, attention.FLASH_MIN_KEYS
+  q, k, v = _qkv(short, short, head_dim=8)
+  np.testing.assert_allclose(attend(q, k, v, causal=True, backend="cudnn"),
+                             _reference(q, k, v, True), atol=1e-5)
+  q, k, v = _qkv(long, long, head_dim=8)
+  attend(q, k, v, backend="cudnn")
+  assert flash_lengths == [long]
+
+
 @pytest.mark.skipif(not ON_GPU, reason="cuDNN flash attention needs a GPU")
 @pytest.mark.parametrize("lq,lk,head_dim", [(256, 256, 64), (15, 16, 72)])
 def test_cudnn_equals_xla_in_bfloat16(lq, lk, head_dim):

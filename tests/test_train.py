@@ -97,3 +97,21 @@ def test_sharded_training_with_splash_attention_equals_xla():
   np.testing.assert_allclose(metrics["loss"], ref_metrics["loss"], rtol=1e-5)
   for a, b in zip(jax.tree.leaves(state.params), jax.tree.leaves(ref_state.params)):
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
+
+
+def test_compiled_step_is_reused_and_matches_the_jitted_step():
+  """``ShardedTrainer.compile`` (what a memory check compiles) runs the same step as ``step``,
+  and later steps with that batch shape run the compiled program instead of compiling again."""
+  config = tiny_config("gridworld.py", *OVERRIDES)
+  trainer = ShardedTrainer(WorldModel.from_config(config), config, make_mesh((2, 4, 1)),
+                           (8, 8, 3), 4)
+  frames, actions = _batch()
+  reference, ref_metrics = trainer.step(trainer.init(jax.random.key(0)), frames, actions)
+  state = trainer.init(jax.random.key(0))
+  compiled = trainer.compile(state, frames, actions)
+  assert compiled.memory_analysis().temp_size_in_bytes > 0
+  assert trainer.compile(state, frames, actions) is compiled
+  state, metrics = trainer.step(state, frames, actions)
+  np.testing.assert_allclose(metrics["loss"], ref_metrics["loss"], rtol=1e-6)
+  for a, b in zip(jax.tree.leaves(state.params), jax.tree.leaves(reference.params)):
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6)

@@ -10,7 +10,11 @@ Backends (``model.attention_impl``):
 ``xla``     ``jax.nn.dot_product_attention(implementation='xla')``; every platform, every dtype.
 ``cudnn``   cuDNN flash attention (``implementation='cudnn'``); GPU only, bf16 / fp16 inputs.
             Head dimensions are zero-padded to a multiple of 8 (cuDNN's requirement) and the
-            softmax scale is kept at ``1/sqrt(d)`` of the true head dimension.
+            softmax scale is kept at ``1/sqrt(d)`` of the true head dimension. Sequences of
+            fewer than ``FLASH_MIN_KEYS`` keys (the temporal axis) go through XLA: the flash
+            kernel's 64 x 128 tiles would be mostly padding (on an H100, IRASim-XL/2's train
+            step spent 143 ms of 724 in cuDNN attention with the 16-frame temporal attention in
+            it; benchmarks/RESULTS.md).
 ``splash``  Pallas splash attention, the TPU flash kernel. Sequences are padded to whole
             128-token blocks and the padding is masked with segment ids. Sequences shorter than
             one block (the temporal axis: a few frames) go through XLA, which is faster for them.
@@ -33,6 +37,7 @@ from wmjax.parallel import BATCH_AXES
 ATTENTION_BACKENDS = ("xla", "cudnn", "splash", "auto")
 FLASH_DTYPES = (jnp.bfloat16, jnp.float16)
 SPLASH_BLOCK = 128  # token block of the splash kernel (the TPU lane width)
+FLASH_MIN_KEYS = 64  # shorter attention goes through XLA under the cudnn backend
 
 
 def check_backend(name: str | None, dtype) -> None:
@@ -80,7 +85,7 @@ def attend(q: jax.Array, k: jax.Array, v: jax.Array, *, causal: bool = False,
   """Softmax attention ``[N, Lq, H, d] x [N, Lk, H, d]^2 -> [N, Lq, H, d]`` (see module doc)."""
   _check_shapes(q, k, v)
   name = resolve_backend(backend, q.dtype)
-  if name == "cudnn":
+  if name == "cudnn" and k.shape[1] >= FLASH_MIN_KEYS:
     return _cudnn(q, k, v, causal)
   if name == "splash" and q.shape[1] >= SPLASH_BLOCK:
     return _splash(q, k, v, causal)

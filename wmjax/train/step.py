@@ -97,6 +97,7 @@ class ShardedTrainer:
                          in_shardings=(self.state_shardings, self.batch_sharding,
                                        self.batch_sharding),
                          out_shardings=(self.state_shardings, replicated), donate_argnums=0)
+    self._compiled: dict[tuple, jax.stages.Compiled] = {}
 
   # Both run with the mesh in context, for kernels that are split over it by hand (splash).
 
@@ -106,5 +107,21 @@ class ShardedTrainer:
 
   def step(self, state: TrainState, frames: Any, actions: Any):
     check_batch_shapes(self.world_model, frames.shape, actions.shape, self.mesh)
+    step = self._compiled.get(_batch_key(frames, actions), self._step)
     with jax.set_mesh(self.mesh):
-      return self._step(state, frames, actions)
+      return step(state, frames, actions)
+
+  def compile(self, state: Any, frames: Any, actions: Any) -> jax.stages.Compiled:
+    """The step compiled ahead of time for this batch (arrays or ``jax.ShapeDtypeStruct``s);
+    later :meth:`step` calls with the same batch shapes run it instead of compiling again.
+    ``.memory_analysis()`` gives its per-device argument, output and temporary bytes."""
+    check_batch_shapes(self.world_model, frames.shape, actions.shape, self.mesh)
+    key = _batch_key(frames, actions)
+    if key not in self._compiled:
+      with jax.set_mesh(self.mesh):
+        self._compiled[key] = self._step.lower(state, frames, actions).compile()
+    return self._compiled[key]
+
+
+def _batch_key(frames: Any, actions: Any) -> tuple:
+  return (tuple(frames.shape), str(frames.dtype), tuple(actions.shape), str(actions.dtype))
