@@ -197,12 +197,29 @@ def diffusion_loss(denoise_fn: Callable[[jax.Array, jax.Array], jax.Array], proc
   ``denoise_fn(x_t, levels)`` runs the network on the noisy video ``[B, T, H, W, C]`` at levels
   ``[B, T]``. Returns ``(loss, aux)`` with the per-frame loss ``[B, T]`` and the levels in ``aux``.
   """
+  levels, mask, noise = training_noise(process, rng, x0.shape, regime, num_context)
+  loss_sum, per_frame = masked_loss_sum(denoise_fn, process, x0, levels, noise, mask)
+  return loss_sum / mask.sum(), {"per_frame_loss": per_frame, "levels": levels, "loss_mask": mask}
+
+
+def training_noise(process: Process, rng: jax.Array, shape: tuple[int, ...],
+                   regime: str = "per_frame", num_context: int = 1
+                   ) -> tuple[jax.Array, jax.Array, jax.Array]:
+  """The random part of one training batch of videos ``shape = [B, T, ...]``: levels ``[B, T]``,
+  loss mask ``[B, T]`` (:func:`training_levels`) and Gaussian noise of ``shape``."""
   level_rng, noise_rng = jax.random.split(rng)
+  levels, mask = training_levels(process, level_rng, shape[0], shape[1], regime, num_context)
+  return levels, mask, jax.random.normal(noise_rng, shape, jnp.float32)
+
+
+def masked_loss_sum(denoise_fn: Callable[[jax.Array, jax.Array], jax.Array], process: Process,
+                    x0: jax.Array, levels: jax.Array, noise: jax.Array, mask: jax.Array
+                    ) -> tuple[jax.Array, jax.Array]:
+  """(sum over the loss frames of the per-frame MSE, per-frame MSE ``[B, T]``) for given levels
+  and noise; summing it over slices of a batch and dividing by ``mask.sum()`` of the whole batch
+  gives :func:`diffusion_loss` of the whole batch (gradient accumulation)."""
   b, t = x0.shape[:2]
-  levels, mask = training_levels(process, level_rng, b, t, regime, num_context)
-  noise = jax.random.normal(noise_rng, x0.shape, x0.dtype)
-  out = denoise_fn(process.add_noise(x0, levels, noise), levels)
-  err = jnp.square(out.astype(jnp.float32) - process.target(x0, noise, levels))
+  out = denoise_fn(process.add_noise(x0, levels, noise.astype(x0.dtype)), levels)
+  err = jnp.square(out.astype(jnp.float32) - process.target(x0, noise.astype(x0.dtype), levels))
   per_frame = err.reshape(b, t, -1).mean(-1)
-  loss = (per_frame * mask).sum() / mask.sum()
-  return loss, {"per_frame_loss": per_frame, "levels": levels, "loss_mask": mask}
+  return (per_frame * mask).sum(), per_frame

@@ -27,7 +27,7 @@ class OptimConfig:
   weight_decay: float = 0.0
   grad_clip: float = 0.1  # global norm; 0 disables
   ema_decay: float = 0.9999
-  grad_accum: int = 1  # micro-batches per update
+  grad_accum: int = 1  # micro-batches the global batch is cut into inside one step
 
 
 @flax.struct.dataclass
@@ -54,13 +54,11 @@ def learning_rate_schedule(optim: ml_collections.ConfigDict) -> optax.Schedule:
 
 
 def make_optimizer(optim: ml_collections.ConfigDict) -> optax.GradientTransformation:
-  """AdamW with global-norm clipping and optional gradient accumulation."""
+  """AdamW with global-norm clipping (gradient accumulation happens inside the train step)."""
   tx = optax.adamw(learning_rate_schedule(optim), b1=optim.b1, b2=optim.b2,
                    weight_decay=optim.weight_decay)
   if optim.grad_clip > 0:
     tx = optax.chain(optax.clip_by_global_norm(optim.grad_clip), tx)
-  if optim.get("grad_accum", 1) > 1:
-    tx = optax.MultiSteps(tx, every_k_schedule=optim.grad_accum)
   return tx
 
 

@@ -19,7 +19,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from wmjax import parallel
-from wmjax.diffusion import diffusion_loss
+from wmjax.diffusion import masked_loss_sum, training_noise
 from wmjax.rollout import WorldModel
 from wmjax.train.checkpoint import abstract_with_shardings
 from wmjax.train.state import (TrainState, create_train_state, ema_update, learning_rate_schedule,
@@ -28,26 +28,53 @@ from wmjax.train.state import (TrainState, create_train_state, ema_update, learn
 
 def make_train_step(world_model: WorldModel, config: ml_collections.ConfigDict,
                     tx: optax.GradientTransformation):
-  """The pure train step ``(state, frames, actions) -> (state, metrics)``."""
+  """The pure train step ``(state, frames, actions) -> (state, metrics)``.
+
+  The randomness of the whole batch (noise levels, noise, action dropout) is drawn first; with
+  ``optim.grad_accum = k > 1`` the batch is then cut into k equal micro-batches whose gradients
+  are summed in a ``lax.scan`` before one update, so that only one micro-batch's activations are
+  alive at a time. The loss and update equal the whole batch's up to float rounding.
+  """
   net, process, diffusion = world_model.network, world_model.process, config.diffusion
   schedule = learning_rate_schedule(config.optim)
+  micro = int(config.optim.get("grad_accum", 1))
 
   def step(state: TrainState, frames: jax.Array, actions: jax.Array):
     key = jax.random.fold_in(jax.random.wrap_key_data(state.rng), state.step)
-    dropout_key, diffusion_key = jax.random.split(key)
+    noise_key, dropout_key = jax.random.split(key)
+    b = frames.shape[0]
+    levels, mask, noise = training_noise(process, noise_key, frames.shape, diffusion.regime,
+                                         diffusion.num_context)
+    dropped = jax.random.bernoulli(dropout_key, net.action_dropout, (b,))
+    normalizer = mask.sum()
 
-    def loss_fn(params):
-      def denoise(x, levels):
-        return net.apply({"params": params}, x, process.model_time(levels), actions, train=True,
-                         rngs={"dropout": dropout_key})
-      return diffusion_loss(denoise, process, frames, diffusion_key, diffusion.regime,
-                            diffusion.num_context)
+    def loss_sum(params, batch):
+      x0, a, lv, m, nz, drop = batch
+      denoise = lambda x, lvl: net.apply({"params": params}, x, process.model_time(lvl), a,
+                                         drop_actions=drop)
+      return masked_loss_sum(denoise, process, x0, lv, nz, m)[0] / normalizer
 
-    (loss, _), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params["params"])
+    grad_fn = jax.value_and_grad(loss_sum)
+    batch = (frames, actions, levels, mask, noise, dropped)
+    params = state.params["params"]
+    if micro == 1:
+      loss, grads = grad_fn(params, batch)
+    else:
+      # Strided slices: sample j goes to micro-batch j % k, so that every device keeps its own
+      # samples (the batch is sharded in contiguous blocks over the data axes).
+      slices = jax.tree.map(
+          lambda a: a.reshape((b // micro, micro) + a.shape[1:]).swapaxes(0, 1), batch)
+
+      def accumulate(carry, piece):
+        loss_piece, grad_piece = grad_fn(params, piece)
+        return jax.tree.map(jnp.add, carry, (loss_piece, grad_piece)), None
+
+      zeros = (jnp.zeros((), jnp.float32), jax.tree.map(jnp.zeros_like, params))
+      (loss, grads), _ = jax.lax.scan(accumulate, zeros, slices)
     updates, opt_state = tx.update({"params": grads}, state.opt_state, state.params)
-    params = optax.apply_updates(state.params, updates)
-    new_state = state.replace(step=state.step + 1, params=params, opt_state=opt_state,
-                              ema_params=ema_update(state.ema_params, params,
+    new_params = optax.apply_updates(state.params, updates)
+    new_state = state.replace(step=state.step + 1, params=new_params, opt_state=opt_state,
+                              ema_params=ema_update(state.ema_params, new_params,
                                                     config.optim.ema_decay, state.step))
     metrics = {"loss": loss, "grad_norm": optax.tree.norm(grads),
                "learning_rate": schedule(state.step)}
@@ -56,8 +83,10 @@ def make_train_step(world_model: WorldModel, config: ml_collections.ConfigDict,
   return step
 
 
-def check_batch_shapes(world_model: WorldModel, frames_shape, actions_shape, mesh: Mesh) -> None:
-  """ValueError before compilation for a batch the model or the mesh cannot take."""
+def check_batch_shapes(world_model: WorldModel, frames_shape, actions_shape, mesh: Mesh,
+                       micro_batches: int = 1) -> None:
+  """ValueError before compilation for a batch the model, the mesh or the number of
+  gradient-accumulation micro-batches cannot take."""
   net = world_model.network
   if len(frames_shape) != 5 or len(actions_shape) != 3:
     raise ValueError(f"batch must hold frames [B, F, H, W, C] and actions [B, F-1, A], got "
@@ -68,10 +97,13 @@ def check_batch_shapes(world_model: WorldModel, frames_shape, actions_shape, mes
   net.check_inputs(jax.ShapeDtypeStruct(frames_shape, jnp.float32),
                    jax.ShapeDtypeStruct(frames_shape[:2], jnp.float32),
                    jax.ShapeDtypeStruct(actions_shape, jnp.float32))
-  shards = mesh.shape["data"] * mesh.shape["fsdp"]
-  if frames_shape[0] % shards:
+  data_parallel = mesh.shape["data"] * mesh.shape["fsdp"]
+  if frames_shape[0] % (data_parallel * micro_batches):
+    accumulation = (f" x {micro_batches} micro-batches (optim.grad_accum)"
+                    if micro_batches > 1 else "")
     raise ValueError(f"global batch {frames_shape[0]} is not divisible by the data-parallel size "
-                     f"{shards} (mesh data x fsdp = {mesh.shape['data']} x {mesh.shape['fsdp']})")
+                     f"{data_parallel}{accumulation} (mesh data x fsdp = {mesh.shape['data']} x "
+                     f"{mesh.shape['fsdp']})")
 
 
 class ShardedTrainer:
@@ -80,6 +112,7 @@ class ShardedTrainer:
   def __init__(self, world_model: WorldModel, config: ml_collections.ConfigDict, mesh: Mesh,
                frame_shape: tuple[int, int, int], frames: int):
     self.world_model, self.mesh = world_model, mesh
+    self.micro_batches = int(config.optim.get("grad_accum", 1))
     self.tx = make_optimizer(config.optim)
 
     def init(rng):
@@ -106,7 +139,8 @@ class ShardedTrainer:
       return self._init(rng)
 
   def step(self, state: TrainState, frames: Any, actions: Any):
-    check_batch_shapes(self.world_model, frames.shape, actions.shape, self.mesh)
+    check_batch_shapes(self.world_model, frames.shape, actions.shape, self.mesh,
+                       self.micro_batches)
     step = self._compiled.get(_batch_key(frames, actions), self._step)
     with jax.set_mesh(self.mesh):
       return step(state, frames, actions)
@@ -115,7 +149,8 @@ class ShardedTrainer:
     """The step compiled ahead of time for this batch (arrays or ``jax.ShapeDtypeStruct``s);
     later :meth:`step` calls with the same batch shapes run it instead of compiling again.
     ``.memory_analysis()`` gives its per-device argument, output and temporary bytes."""
-    check_batch_shapes(self.world_model, frames.shape, actions.shape, self.mesh)
+    check_batch_shapes(self.world_model, frames.shape, actions.shape, self.mesh,
+                       self.micro_batches)
     key = _batch_key(frames, actions)
     if key not in self._compiled:
       with jax.set_mesh(self.mesh):
