@@ -95,10 +95,10 @@ def check_resume(step: int, saved: dict, requested: ml_collections.ConfigDict,
     cause = (f"the config differs in:\n{_listing(changes)}" if changes else
              "the config is unchanged, so the model code must have changed")
     raise ConfigChangeError(
-        f"checkpoint {step} cannot be resumed with this config: its {len(differing)} "
-        f"differently shaped array(s) (e.g. {detail}) do not fit the model; {cause}\n"
-        f"A run cannot change its parameters' shapes: rerun without these overrides, or train "
-        f"in a new --workdir.")
+        f"checkpoint {step} cannot be resumed with this config: {len(differing)} of its arrays "
+        f"do not fit the train state this config builds (e.g. {detail}); {cause}\n"
+        f"A run cannot change the shapes of its parameters or optimiser state: rerun without "
+        f"these overrides, or train in a new --workdir.")
   accepted, refused = {}, {}
   for key, change in changes.items():
     by = "safe" if _named(key, SAFE_ON_RESUME) else _named(key, allow)
