@@ -14,7 +14,8 @@ from wmjax.data import gridworld, oxe
 from wmjax.data.convert import convert_to_array_record
 from wmjax.data.pipeline import WindowSource, training_pipeline
 from wmjax.data.rlds import episode_windows
-from wmjax.data.sources import ArrayRecordEpisodes, action_stats, tfrecord_episodes
+from wmjax.data.sources import (ArrayRecordEpisodes, action_stats, stats_filename,
+                                 tfrecord_episodes)
 from wmjax.data.stats import ActionStats
 from wmjax.parallel import global_batch
 
@@ -153,8 +154,10 @@ def test_action_stats_round_trip_and_normalisation(oxe_data, tmp_path):
     np.testing.assert_array_equal(getattr(again, field), getattr(stats, field))
   assert (again.dataset, again.count, again.gripper_dim) == (stats.dataset, stats.count, 6)
   # cached beside the data: the same numbers come back without recomputation
-  cached = json.loads(open(f"{oxe_data['fractal20220817_data'][1]}/wmjax_action_stats.json").read())
-  assert cached == stats.to_dict()
+  builder_dir = oxe_data["fractal20220817_data"][1]
+  spec = ArrayRecordEpisodes(builder_dir, "train").spec
+  cached = json.loads(open(f"{builder_dir}/{stats_filename('train', spec)}").read())
+  assert ActionStats.from_dict(cached).to_dict() == stats.to_dict() and cached["split"] == "train"
 
   by_hand = ActionStats.compute(np.array([[0.0, 10.0, 1.0], [2.0, 30.0, 0.0]]), "toy", gripper_dim=2)
   np.testing.assert_allclose(by_hand.mean, [1, 20, 0.5])

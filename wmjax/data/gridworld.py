@@ -22,9 +22,8 @@ from wmjax.data import oxe, synthetic
 COLORS = np.array([(255, 64, 64), (64, 255, 64), (64, 128, 255), (255, 255, 64), (255, 64, 255),
                    (64, 255, 255), (255, 160, 32), (160, 96, 255)], np.uint8)
 
-oxe.register(oxe.DatasetSpec(
-    "gridworld", "wmjax", "observation/image", "language_instruction", ("action",),
-    oxe.concat_actions("action"), None, None, None, ("observation/square_positions",)))
+oxe.register(oxe.DatasetSpec("gridworld", "wmjax",
+                             extra_keys=("observation/square_positions",)))
 
 
 @dataclasses.dataclass(frozen=True)

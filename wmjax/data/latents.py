@@ -3,7 +3,7 @@
 ``wmjax data encode`` runs every episode of a dataset's splits through the config's codec and
 writes, per split, one ArrayRecord file of episodes (msgpack: ``latents`` float16
 ``[L, h, w, c]``, standardised ``actions`` ``[L, A]``, ``instruction``, per-step extras) plus
-``wmjax_latents.json`` (dataset, spec, resolution, latent shape, the codec, episode lengths and
+``wmjax_latents.json`` (dataset, its spec, resolution, latent shape, the codec, episode lengths and
 the train split's action statistics). :class:`LatentEpisodes` reads them with the interface of
 :class:`wmjax.data.sources.ArrayRecordEpisodes`, so windows, shuffling, sharding and
 checkpointable iterators work unchanged; set ``config.data.latents_dir`` to train from them.
@@ -25,7 +25,7 @@ from flax import serialization
 
 from wmjax.data import oxe
 from wmjax.data.rlds import Episode, make_window
-from wmjax.data.sources import ArrayRecordEpisodes
+from wmjax.data.sources import ArrayRecordEpisodes, SpecArg
 
 METADATA = "wmjax_latents.json"
 
@@ -46,12 +46,13 @@ def codec_description(codec_config) -> dict:
   return out
 
 
-def encode_dataset(builder_dir: str, out: str, splits: Sequence[str], dataset: str | None,
+def encode_dataset(builder_dir: str, out: str, splits: Sequence[str], spec: SpecArg,
                    resolution: tuple[int, int], encode: Callable[[np.ndarray], np.ndarray],
                    codec: dict, action_stats: dict) -> str:
-  """Encode every episode of ``splits`` with ``encode`` (uint8 frames ``[L, H, W, 3]`` ->
-  latents ``[L, h, w, c]``) into ``out``, which must not exist; written to a temporary directory
-  first and renamed when complete."""
+  """Encode every episode of ``splits`` read with ``spec`` (see
+  :class:`~wmjax.data.sources.ArrayRecordEpisodes`; episodes without its camera are left out)
+  with ``encode`` (uint8 frames ``[L, H, W, 3]`` -> latents ``[L, h, w, c]``) into ``out``,
+  which must not exist; written to a temporary directory first and renamed when complete."""
   if os.path.exists(out):
     raise FileExistsError(f"{out} exists; choose a new directory (latents are never overwritten)")
   tmp = out.rstrip("/") + ".incomplete"
@@ -60,14 +61,14 @@ def encode_dataset(builder_dir: str, out: str, splits: Sequence[str], dataset: s
   metadata: dict[str, Any] = {"resolution": list(resolution), "codec": codec, "splits": {},
                               "action_stats": action_stats}
   for split in splits:
-    episodes = ArrayRecordEpisodes(builder_dir, split, dataset)
-    metadata.update(dataset=episodes.spec.name, layout=episodes.spec.layout,
+    episodes = ArrayRecordEpisodes(builder_dir, split, spec)
+    metadata.update(dataset=episodes.spec.name, spec=episodes.spec.to_dict(),
                     builder_dir=os.fspath(builder_dir))
     writer = ArrayRecordWriter(os.path.join(tmp, _split_file(split)), "group_size:1")
     lengths = []
-    for index in range(len(episodes)):
-      episode = episodes.episode(index)
-      window = make_window(episode, 0, len(episode), resolution, index)
+    for index in np.flatnonzero(episodes.lengths()):
+      episode = episodes.episode(int(index))
+      window = make_window(episode, 0, len(episode), resolution, int(index), episodes.spec.resize)
       latents = np.asarray(encode(window["frames"]), np.float16)
       record = {"latents": latents, "actions": episode.actions.astype(np.float32),
                 "instruction": episode.instruction,
@@ -100,8 +101,7 @@ class LatentEpisodes:
       raise ValueError(f"{latents_dir} has no split {split!r}; splits: "
                        f"{sorted(self.metadata['splits'])}")
     self.builder_dir, self.split = os.fspath(latents_dir), split
-    layouts = {s.layout: s for s in oxe.SPECS[self.metadata["dataset"]]}
-    self.spec = dataclasses.replace(layouts[self.metadata["layout"]],
+    self.spec = dataclasses.replace(oxe.DatasetSpec.from_dict(self.metadata["spec"]),
                                     resolution=tuple(self.metadata["resolution"]))
     self._lengths = np.asarray(self.metadata["splits"][split]["lengths"], np.int64)
     self._source = grain.sources.ArrayRecordDataSource(

@@ -1,23 +1,40 @@
-"""Open-X Embodiment (RLDS) dataset specs: where the image, instruction and action live in a step,
-and how actions are standardised into the IRASim action spaces.
-
-IRASim action space: RT-1 and Bridge 7-dim ``[dx, dy, dz, droll, dpitch, dyaw, gripper]``;
-Language-Table 2-dim ``[dx, dy]``. The published actions are used as they are (RT-1's
-``world_vector`` / ``rotation_delta`` / ``gripper_closedness_action``; Bridge's 7-dim action or its
-``world_vector`` / ``rotation_delta`` / ``open_gripper``).
+"""Dataset specs: where the camera(s), instruction and action live in an RLDS step, how actions
+are assembled, and how frames are subsampled and fitted — plain data, so a spec is a config.
 
 A step is the nested dict RLDS gives for one time step (``step['observation']['image']``,
 ``step['action']['world_vector']``, ...); feature keys are written as ``/``-joined paths below
-``steps``. Each dataset may have several published layouts; :func:`resolve_spec` picks the one
-whose keys the builder's ``info.features`` holds, or fails listing the keys it expected and found.
+``steps`` (episode-level keys below the episode, e.g. ``episode_metadata/has_image_0``).
+
+Built-in specs (:data:`SPECS`): the Open-X datasets in the IRASim action spaces — RT-1 and Bridge
+7-dim ``[dx, dy, dz, droll, dpitch, dyaw, gripper]``, Language-Table 2-dim ``[dx, dy]``; the
+published actions are used as they are — and the datasets wmjax generates (gridworld, Push-T,
+registered by their modules). A dataset may have several published layouts; :func:`resolve_spec`
+picks the first whose keys the builder's ``info.features`` holds, or fails listing the keys it
+expected and found. Any other RLDS dataset is read by a spec given in ``config.data.spec`` (its
+schema is :class:`DatasetSpec`, see :func:`spec_config`); ``wmjax data inspect`` suggests one.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, Mapping
+import hashlib
+import json
+from typing import Any, Mapping, Sequence
 
 import numpy as np
+
+# Action conversions, applied to one action key's values before concatenation.
+ACTION_TRANSFORMS = {
+    "": lambda a: a,
+    "invert": lambda a: 1.0 - a,  # [0, 1] open <-> close
+    "negate": lambda a: -a,
+    "to_unit": lambda a: (a + 1.0) / 2.0,  # [-1, 1] -> [0, 1]
+    "to_signed": lambda a: 2.0 * a - 1.0,  # [0, 1] -> [-1, 1]
+    "binarize": lambda a: (a > 0.5).astype(np.float32),
+}
+INSTRUCTION_ENCODINGS = ("auto", "text", "utf8_codes")
+RESIZE_MODES = ("crop", "pad")
+MISSING_IMAGE = ("skip", "error")
 
 
 def get_path(tree: Mapping[str, Any], path: str) -> Any:
@@ -27,64 +44,154 @@ def get_path(tree: Mapping[str, Any], path: str) -> Any:
   return tree
 
 
-def decode_instruction(value: Any) -> str:
-  """A text feature (bytes / str) or Language-Table's zero-padded int32 UTF-8 byte array -> str."""
+def decode_instruction(value: Any, encoding: str = "auto") -> str:
+  """A text feature (bytes / str) or a zero-padded int UTF-8 code array (Language-Table's
+  ``int32[512]``) -> str. ``encoding`` ``text`` / ``utf8_codes`` insists on one of the two."""
+  array = np.asarray(value)
+  is_codes = array.dtype.kind in "iu"
+  if encoding == "text" and is_codes or encoding == "utf8_codes" and not is_codes:
+    raise ValueError(f"instruction_encoding={encoding!r} but the instruction is an array of "
+                     f"dtype {array.dtype}")
   if isinstance(value, (bytes, np.bytes_)):
     return bytes(value).decode("utf-8")
   if isinstance(value, str):
     return value
-  array = np.asarray(value)
-  if array.dtype.kind in "iu":
+  if is_codes:
     codes = array.reshape(-1)
     codes = codes[: np.argmax(codes == 0)] if (codes == 0).any() else codes
     return bytes(codes.astype(np.uint8).tolist()).decode("utf-8")
-  if array.dtype.kind in "SO":
+  if array.dtype.kind in "SOU":
     return decode_instruction(array.reshape(-1)[0]) if array.size else ""
   raise ValueError(f"cannot read an instruction from a value of dtype {array.dtype}")
 
 
-def concat_actions(*paths: str) -> Callable[[Mapping], np.ndarray]:
-  """Standardiser concatenating the features at ``paths`` of batched steps into ``[L, A]``."""
-  def standardise(steps):
-    parts = [np.asarray(get_path(steps, p), np.float32) for p in paths]
-    return np.concatenate([p.reshape(p.shape[0], -1) for p in parts], axis=-1)
-  return standardise
-
-
 @dataclasses.dataclass(frozen=True)
 class DatasetSpec:
-  """One published layout of an RLDS dataset.
+  """How to read one RLDS layout (every field is config-friendly; see the module doc).
 
-  ``image_key`` / ``instruction_key`` / ``action_keys`` are paths inside a step;
-  ``standardise`` maps batched steps (arrays with a leading step axis L) to float32 actions
-  ``[L, action_dim]``; ``gripper_dim`` is the index left alone by normalisation (None for none);
-  ``resolution`` is (H, W) of the IRASim recipe. ``action_dim`` / ``resolution`` of None are read
-  from the features (the action feature's last dimension, the image's native size);
-  ``extra_keys`` are per-step arrays carried into windows (e.g. true object positions).
+  ``image_keys``: one step key per camera view; ``"a|b"`` lists fallbacks (the first the dataset
+  has is used); several views are tiled left to right, each fitted to ``W / views``.
+  ``image_flags``: episode-level booleans saying a view exists (``episode_metadata/has_image_0``);
+  left empty, :func:`resolve_spec` finds ``episode_metadata/has_<camera>`` where present. An
+  episode whose flag is false is skipped (``missing_image='skip'``, counted in the log) or an
+  error (``'error'``); never read as black frames.
+  ``instruction_key``: ``""`` for none; ``instruction_encoding``: ``auto`` / ``text`` /
+  ``utf8_codes``.
+  ``action_keys``: concatenated in this order into float32 ``[L, action_dim]``;
+  ``action_transforms``: one name of :data:`ACTION_TRANSFORMS` per key (``""`` = as published),
+  or empty for none; ``gripper_dim``: the index normalisation leaves alone (None for none).
+  ``frame_step``: keep every k-th step; the k actions in between are summed, except the gripper
+  dimension which takes the last one.
+  ``resolution``: (H, W) frames are fitted to (None: the camera's native size); ``resize``:
+  ``crop`` (centre crop to the aspect ratio, then scale) or ``pad`` (scale to fit, black bars).
+  ``action_dim`` None: read from the features. ``extra_keys``: per-step arrays carried into
+  windows (e.g. true object positions).
   """
 
   name: str
-  layout: str
-  image_key: str
-  instruction_key: str
-  action_keys: tuple[str, ...]
-  standardise: Callable[[Mapping], np.ndarray]
-  action_dim: int | None
-  gripper_dim: int | None
-  resolution: tuple[int, int] | None
+  layout: str = "config"
+  image_keys: tuple[str, ...] = ("observation/image",)
+  image_flags: tuple[str, ...] = ()
+  missing_image: str = "skip"
+  instruction_key: str = "language_instruction"
+  instruction_encoding: str = "auto"
+  action_keys: tuple[str, ...] = ("action",)
+  action_transforms: tuple[str, ...] = ()
+  action_dim: int | None = None
+  gripper_dim: int | None = None
+  frame_step: int = 1
+  resolution: tuple[int, int] | None = None
+  resize: str = "crop"
   extra_keys: tuple[str, ...] = ()
+
+  def __post_init__(self):
+    for name in ("image_keys", "image_flags", "action_keys", "action_transforms", "extra_keys"):
+      value = getattr(self, name)
+      if isinstance(value, str):
+        value = (value,) if value else ()
+      object.__setattr__(self, name, tuple(value))
+    if self.resolution is not None:
+      object.__setattr__(self, "resolution", tuple(int(v) for v in self.resolution))
+    problems = []
+    if not self.image_keys:
+      problems.append("image_keys is empty")
+    if not self.action_keys:
+      problems.append("action_keys is empty")
+    if self.action_transforms and len(self.action_transforms) != len(self.action_keys):
+      problems.append(f"{len(self.action_transforms)} action_transforms for "
+                      f"{len(self.action_keys)} action_keys")
+    unknown = set(self.action_transforms) - set(ACTION_TRANSFORMS)
+    if unknown:
+      problems.append(f"unknown action_transforms {sorted(unknown)} (known: "
+                      f"{sorted(ACTION_TRANSFORMS)})")
+    for field, allowed in (("instruction_encoding", INSTRUCTION_ENCODINGS),
+                           ("resize", RESIZE_MODES), ("missing_image", MISSING_IMAGE)):
+      if getattr(self, field) not in allowed:
+        problems.append(f"{field} must be one of {allowed}, got {getattr(self, field)!r}")
+    if int(self.frame_step) < 1:
+      problems.append(f"frame_step must be >= 1, got {self.frame_step}")
+    if self.resolution is not None and (len(self.resolution) != 2 or min(self.resolution) < 1):
+      problems.append(f"resolution must be (H, W), got {self.resolution}")
+    if problems:
+      raise ValueError(f"dataset spec {self.name!r}: " + "; ".join(problems))
 
   @property
   def required_keys(self) -> tuple[str, ...]:
-    return (self.image_key, self.instruction_key) + self.action_keys + self.extra_keys
+    """Step keys the dataset must have (with fallbacks, the first image alternative)."""
+    instruction = (self.instruction_key,) if self.instruction_key else ()
+    return self.image_keys + instruction + self.action_keys + self.extra_keys
 
   def actions(self, steps: Mapping) -> np.ndarray:
-    """Standardised actions ``[L, action_dim]`` of batched steps."""
-    actions = self.standardise(steps)
-    if actions.ndim != 2 or actions.shape[1] != self.action_dim:
-      raise ValueError(f"{self.name}: standardised actions have shape {actions.shape}, expected "
+    """Assembled actions ``[L, action_dim]`` float32 of batched steps (before subsampling)."""
+    transforms = self.action_transforms or ("",) * len(self.action_keys)
+    parts = []
+    for key, transform in zip(self.action_keys, transforms):
+      part = np.asarray(get_path(steps, key), np.float32)
+      parts.append(ACTION_TRANSFORMS[transform](part.reshape(part.shape[0], -1)))
+    actions = np.concatenate(parts, axis=-1).astype(np.float32)
+    if self.action_dim is not None and actions.shape[1] != self.action_dim:
+      raise ValueError(f"{self.name}: assembled actions have shape {actions.shape}, expected "
                        f"[L, {self.action_dim}]")
     return actions
+
+  def subsample_actions(self, actions: np.ndarray) -> np.ndarray:
+    """Actions ``[L, A]`` of raw steps -> ``[ceil(L / frame_step), A]`` (see the class doc)."""
+    k = self.frame_step
+    if k == 1:
+      return actions
+    starts = np.arange(0, len(actions), k)
+    out = np.add.reduceat(actions, starts, axis=0) if len(actions) else actions
+    if self.gripper_dim is not None:
+      out[:, self.gripper_dim] = actions[np.minimum(starts + k, len(actions)) - 1,
+                                         self.gripper_dim]
+    return out.astype(np.float32)
+
+  def to_dict(self) -> dict:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+  @classmethod
+  def from_dict(cls, data: Mapping[str, Any]) -> "DatasetSpec":
+    fields = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(data) - fields
+    if unknown:
+      raise ValueError(f"unknown dataset spec fields {sorted(unknown)}; known: {sorted(fields)}")
+    return cls(**data)
+
+  def digest(self) -> str:
+    """Identifies what the actions and the chosen episodes depend on (statistics cache key)."""
+    keys = ("name", "layout", "image_keys", "image_flags", "missing_image", "action_keys",
+            "action_transforms", "gripper_dim", "frame_step")
+    text = json.dumps({k: self.to_dict()[k] for k in keys}, sort_keys=True)
+    return hashlib.sha1(text.encode()).hexdigest()[:12]
+
+
+def spec_config(**fields):
+  """An ``ml_collections.ConfigDict`` of every :class:`DatasetSpec` field (its schema), default
+  values updated by ``fields`` — what ``config.data.spec`` holds."""
+  import ml_collections
+  spec = DatasetSpec(**{"name": "", **fields}).to_dict()
+  return ml_collections.ConfigDict({k: tuple(v) if isinstance(v, list) else v
+                                    for k, v in spec.items()})
 
 
 _RT1_ACTION = ("action/world_vector", "action/rotation_delta", "action/gripper_closedness_action")
@@ -92,18 +199,20 @@ _BRIDGE_OXE_ACTION = ("action/world_vector", "action/rotation_delta", "action/op
 
 SPECS: dict[str, tuple[DatasetSpec, ...]] = {
     "fractal20220817_data": (DatasetSpec(
-        "fractal20220817_data", "oxe", "observation/image",
-        "observation/natural_language_instruction", _RT1_ACTION, concat_actions(*_RT1_ACTION), 7, 6,
-        (256, 320)),),
+        "fractal20220817_data", "oxe", ("observation/image",),
+        instruction_key="observation/natural_language_instruction", action_keys=_RT1_ACTION,
+        action_dim=7, gripper_dim=6, resolution=(256, 320)),),
     "bridge": (
-        DatasetSpec("bridge", "oxe", "observation/image", "observation/natural_language_instruction",
-                    _BRIDGE_OXE_ACTION, concat_actions(*_BRIDGE_OXE_ACTION), 7, 6, (256, 320)),
-        DatasetSpec("bridge", "bridge_v2", "observation/image_0", "language_instruction",
-                    ("action",), concat_actions("action"), 7, 6, (256, 320)),
+        DatasetSpec("bridge", "oxe", ("observation/image",),
+                    instruction_key="observation/natural_language_instruction",
+                    action_keys=_BRIDGE_OXE_ACTION, action_dim=7, gripper_dim=6,
+                    resolution=(256, 320)),
+        DatasetSpec("bridge", "bridge_v2", ("observation/image_0",), action_dim=7, gripper_dim=6,
+                    resolution=(256, 320)),
     ),
     "language_table": (DatasetSpec(
-        "language_table", "oxe", "observation/rgb", "observation/instruction", ("action",),
-        concat_actions("action"), 2, None, (288, 512)),),
+        "language_table", "oxe", ("observation/rgb",), instruction_key="observation/instruction",
+        instruction_encoding="utf8_codes", action_dim=2, resolution=(288, 512)),),
 }
 SPECS["bridge_dataset"] = tuple(dataclasses.replace(s, name="bridge_dataset")
                                 for s in SPECS["bridge"])
@@ -114,8 +223,38 @@ def register(spec: DatasetSpec) -> None:
   SPECS[spec.name] = tuple(s for s in SPECS.get(spec.name, ()) if s.layout != spec.layout) + (spec,)
 
 
-def _step_features(features) -> dict[str, Any]:
-  """``/``-joined leaf keys below ``steps`` of a TFDS RLDS ``FeaturesDict`` -> leaf features."""
+# Keys of ``config.data`` that override fields of the dataset's spec.
+CONFIG_OVERRIDES = {"image_key": "image_keys", "resize": "resize", "missing_image": "missing_image",
+                    "frame_step": "frame_step"}
+
+
+def specs_from_config(data: Mapping[str, Any]) -> tuple[DatasetSpec, ...]:
+  """Candidate specs of a data config (``config.data`` or a mixture member): ``data.spec`` when
+  it names action keys, else the built-in layouts of ``data.dataset``; then the overrides
+  ``data.image_key`` (str or tuple, ``""`` keeps the spec's), ``data.resize``,
+  ``data.missing_image`` and ``data.frame_step`` where set."""
+  name = data.get("dataset") or ""
+  given = data.get("spec")
+  if given:
+    given = dict(given.to_dict() if hasattr(given, "to_dict") else given)
+    candidates = (DatasetSpec.from_dict({**given, "name": given.get("name") or name}),)
+  elif name in SPECS:
+    candidates = SPECS[name]
+  else:
+    raise ValueError(f"unknown dataset {name!r} and no config.data.spec: known datasets are "
+                     f"{sorted(SPECS)}; for another RLDS dataset set config.data.spec (run "
+                     f"`wmjax data inspect BUILDER_DIR` for a suggestion)")
+  overrides = {}
+  for key, field in CONFIG_OVERRIDES.items():
+    value = data.get(key)
+    if value not in (None, "", ()):
+      overrides[field] = (value,) if field == "image_keys" and isinstance(value, str) else value
+  return tuple(dataclasses.replace(s, **overrides) for s in candidates)
+
+
+def feature_leaves(features) -> dict[str, Any]:
+  """``/``-joined leaf keys of a TFDS ``FeaturesDict`` -> leaf features; the step features
+  (below ``steps``) lose the ``steps/`` prefix, the episode-level ones keep their path."""
   leaves: dict[str, Any] = {}
 
   def walk(feature, prefix):
@@ -131,24 +270,54 @@ def _step_features(features) -> dict[str, Any]:
   if "steps" not in features.keys():
     raise ValueError(f"not an RLDS dataset: no 'steps' feature (top-level keys: "
                      f"{sorted(features.keys())})")
-  walk(features["steps"], "")
+  for key in features.keys():
+    walk(features[key], "" if key == "steps" else key)
   return leaves
 
 
-def resolve_spec(name: str, features) -> DatasetSpec:
-  """The layout of ``name`` whose keys ``features`` (a builder's ``info.features``) holds."""
-  if name not in SPECS:
-    raise ValueError(f"unknown dataset {name!r}; known: {sorted(SPECS)}")
-  leaves = _step_features(features)
-  found = set(leaves)
-  for spec in SPECS[name]:
-    if set(spec.required_keys) <= found:
-      if spec.action_dim is None:
-        dim = sum(int(np.prod(leaves[k].shape)) for k in spec.action_keys)
-        spec = dataclasses.replace(spec, action_dim=dim)
-      if spec.resolution is None:
-        spec = dataclasses.replace(spec, resolution=tuple(leaves[spec.image_key].shape[:2]))
-      return spec
-  expected = "; ".join(f"{s.layout}: {sorted(s.required_keys)}" for s in SPECS[name])
-  raise ValueError(f"{name}: the dataset's features match no known layout. Expected the step "
-                   f"keys of one of [{expected}]; found {sorted(found)}")
+def _pick_image(alternatives: str, found: Mapping[str, Any]) -> str | None:
+  return next((key for key in alternatives.split("|") if key in found), None)
+
+
+def resolve_spec(candidates: str | DatasetSpec | Sequence[DatasetSpec], features) -> DatasetSpec:
+  """The first candidate (a dataset name: its built-in layouts) whose keys ``features`` (a
+  builder's ``info.features``) holds, with image fallbacks, camera flags, ``action_dim`` and
+  ``resolution`` filled in."""
+  if isinstance(candidates, str):
+    if candidates not in SPECS:
+      raise ValueError(f"unknown dataset {candidates!r}; known: {sorted(SPECS)} (or give a "
+                       f"spec in config.data.spec)")
+    candidates = SPECS[candidates]
+  elif isinstance(candidates, DatasetSpec):
+    candidates = (candidates,)
+  leaves = feature_leaves(features)
+  steps = {k: v for k, v in leaves.items() if k.split("/")[0] != "episode_metadata"}
+  for spec in candidates:
+    images = tuple(_pick_image(alternatives, steps) for alternatives in spec.image_keys)
+    others = set(spec.required_keys) - set(spec.image_keys)
+    if None in images or not others <= set(steps):
+      continue
+    flags = spec.image_flags or tuple(
+        f"episode_metadata/has_{key.split('/')[-1]}" for key in images
+        if f"episode_metadata/has_{key.split('/')[-1]}" in leaves)
+    missing_flags = set(flags) - set(leaves)
+    if missing_flags:
+      raise ValueError(f"{spec.name}: the image flags {sorted(missing_flags)} are not features "
+                       f"of the dataset")
+    spec = dataclasses.replace(spec, image_keys=images, image_flags=flags)
+    if spec.action_dim is None:
+      dim = sum(int(np.prod(steps[k].shape)) for k in spec.action_keys)
+      spec = dataclasses.replace(spec, action_dim=dim)
+    if spec.resolution is None:
+      shapes = [steps[k].shape for k in images]
+      if len({s[0] for s in shapes}) > 1:
+        raise ValueError(f"{spec.name}: the views {list(images)} differ in height "
+                         f"({[s[:2] for s in shapes]}); set a resolution")
+      spec = dataclasses.replace(spec, resolution=(shapes[0][0], sum(s[1] for s in shapes)))
+    if spec.gripper_dim is not None and not 0 <= spec.gripper_dim < spec.action_dim:
+      raise ValueError(f"{spec.name}: gripper_dim {spec.gripper_dim} is outside the "
+                       f"{spec.action_dim}-dim actions")
+    return spec
+  expected = "; ".join(f"{s.layout}: {sorted(s.required_keys)}" for s in candidates)
+  raise ValueError(f"{candidates[0].name}: the dataset's features match no known layout. Expected "
+                   f"the step keys of one of [{expected}] ('a|b': a or b); found {sorted(steps)}")

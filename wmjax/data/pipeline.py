@@ -24,15 +24,17 @@ from typing import Any, Sequence
 import grain
 import numpy as np
 
-from wmjax.data.rlds import make_window, window_starts
+from wmjax.data.rlds import make_window, no_windows_error, window_starts
 from wmjax.data.sources import ArrayRecordEpisodes
 from wmjax.data.stats import ActionStats
 
 
 class WindowSource:
-  """Random access to every window of ``frames`` frames (stride ``stride``) of an episode source.
+  """Random access to every window of ``frames`` frames (stride ``stride``) of an episode source,
+  frames fitted to ``resolution`` the way the spec says (``spec.resize``: crop or pad).
 
-  Episodes shorter than ``frames`` are skipped and counted in ``num_skipped_episodes``.
+  Episodes shorter than ``frames`` (and those without the spec's camera, which have length 0)
+  are skipped and counted in ``num_skipped_episodes``.
   """
 
   def __init__(self, episodes: ArrayRecordEpisodes, frames: int, stride: int,
@@ -43,8 +45,7 @@ class WindowSource:
     self.index = np.asarray(starts, np.int64).reshape(-1, 2)
     self.num_skipped_episodes = int((lengths < frames).sum())
     if len(self.index) == 0:
-      raise ValueError(f"{episodes.builder_dir} [{episodes.split}] has no episode of at least "
-                       f"{frames} steps ({len(lengths)} episodes)")
+      raise no_windows_error(f"{episodes.builder_dir} [{episodes.split}]", len(lengths), frames)
 
   @property
   def spec(self):
@@ -56,7 +57,7 @@ class WindowSource:
   def __getitem__(self, k: int) -> dict[str, Any]:
     episode, start = (int(v) for v in self.index[k])
     steps = self.episodes.episode(episode, start, start + self.frames)
-    return make_window(steps, start, self.frames, self.resolution, episode)
+    return make_window(steps, start, self.frames, self.resolution, episode, self.spec.resize)
 
 
 STANDARD_KEYS = ("frames", "actions", "instruction", "episode", "start")

@@ -26,11 +26,9 @@ from wmjax.data import oxe, synthetic
 
 INSTRUCTION = "push the T-shaped block onto the green T"
 
-oxe.register(oxe.DatasetSpec(
-    "pusht", "wmjax", "observation/image", "language_instruction", ("action",),
-    oxe.concat_actions("action"), None, None, None,
-    ("observation/state", "observation/coverage", "observation/success",
-     "observation/policy_noise")))
+oxe.register(oxe.DatasetSpec("pusht", "wmjax", extra_keys=(
+    "observation/state", "observation/coverage", "observation/success",
+    "observation/policy_noise")))
 
 
 @dataclasses.dataclass(frozen=True)

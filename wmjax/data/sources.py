@@ -6,16 +6,20 @@
   files, local or ``gs://gresearch/robotics/...``); needs the ``[tf]`` extra.
 
 Both yield :class:`wmjax.data.rlds.Episode` objects with encoded images, so the windows they make
-are identical. Derived files (episode lengths, action statistics) are cached beside the data, or
-under ``~/.cache/wmjax`` when the data directory is not writable (e.g. a ``gs://`` bucket).
+are identical, and both skip (or refuse) episodes without the spec's camera. Derived files
+(episode lengths and camera flags per split, action statistics per split and spec) are cached
+beside the data, or under ``~/.cache/wmjax`` when the data directory is not writable (e.g. a
+``gs://`` bucket).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
-from typing import Any, Iterator
+import re
+from typing import Any, Iterator, Mapping, Sequence, Union
 
 import ml_collections
 import numpy as np
@@ -23,7 +27,9 @@ import tensorflow_datasets as tfds
 
 from wmjax.data import gridworld, oxe, pusht
 from wmjax.data.rlds import Episode, skip_image_decoding, stack_steps
-from wmjax.data.stats import STATS_FILE, ActionStats
+from wmjax.data.stats import ActionStats
+
+log = logging.getLogger(__name__)
 
 
 def open_builder(builder_dir: str):
@@ -35,8 +41,19 @@ def open_builder(builder_dir: str):
                      f"features.json of a prepared dataset): {e}") from e
 
 
-def resolve(builder, name: str | None = None) -> oxe.DatasetSpec:
-  return oxe.resolve_spec(name or builder.info.name, builder.info.features)
+SpecArg = Union[str, oxe.DatasetSpec, Sequence[oxe.DatasetSpec], None]
+
+
+def resolve(builder, spec: SpecArg = None) -> oxe.DatasetSpec:
+  """The spec of ``builder``'s data: ``spec`` is a dataset name (its built-in layouts), a spec, a
+  sequence of candidate specs (:func:`wmjax.data.oxe.specs_from_config`), or None (the
+  builder's own name)."""
+  return oxe.resolve_spec(spec or builder.info.name, builder.info.features)
+
+
+def _split_name(split: str) -> str:
+  """``train[:95%]`` -> ``train___95__`` (file names)."""
+  return re.sub(r"[^\w.-]", "_", split)
 
 
 def _cache_candidates(builder_dir: str, filename: str) -> list[str]:
@@ -69,23 +86,50 @@ def write_cached_json(builder_dir: str, filename: str, data: Any) -> str:
   raise OSError(f"cannot write {filename} beside {builder_dir} nor in ~/.cache/wmjax")
 
 
+def _check_split(builder, builder_dir: str, split: str) -> None:
+  if split.split("[")[0] not in builder.info.splits:  # slices like "train[95%:]" are fine
+    raise ValueError(f"{builder_dir} has no split {split!r}; splits: {list(builder.info.splits)}")
+
+
+def _missing_camera(spec: oxe.DatasetSpec, flags: Mapping[str, Any], where: str) -> bool:
+  """Whether an episode lacks one of the spec's cameras (its ``image_flags`` say so); with
+  ``missing_image='error'`` that is an error."""
+  missing = [key for key in spec.image_flags if not bool(np.asarray(flags[key]))]
+  if missing and spec.missing_image == "error":
+    raise ValueError(f"{where} lacks the camera {list(spec.image_keys)} ({', '.join(missing)} "
+                     f"is false); choose another with data.image_key, or skip such episodes "
+                     f"with data.missing_image='skip'")
+  return bool(missing)
+
+
+def _log_skipped(where: str, spec: oxe.DatasetSpec, skipped: int, total: int) -> None:
+  if skipped:
+    log.warning("%s: skipped %d of %d episodes without the camera %s (%s false)", where, skipped,
+                total, list(spec.image_keys), ", ".join(spec.image_flags))
+
+
 class ArrayRecordEpisodes:
   """Random access to the episodes of an ArrayRecord RLDS split, images left encoded.
 
+  Steps and lengths are counted after the spec's ``frame_step`` subsampling. Episodes without
+  the spec's camera (see :class:`wmjax.data.oxe.DatasetSpec`) have length 0 in :meth:`lengths`,
+  so no window and no statistic comes from them; how many were skipped is logged.
   Picklable (it reopens the data source lazily), so grain worker processes can use it.
   """
 
-  def __init__(self, builder_dir: str, split: str, name: str | None = None):
+  def __init__(self, builder_dir: str, split: str, spec: SpecArg = None):
     builder = open_builder(builder_dir)
     if builder.info.file_format.value != "array_record":
       raise ValueError(f"{builder_dir} is stored as {builder.info.file_format.value}; random access "
                        f"needs ArrayRecord: run `wmjax data convert {builder_dir} OUT_DIR`")
-    if split.split("[")[0] not in builder.info.splits:  # slices like "train[95%:]" are fine
-      raise ValueError(f"{builder_dir} has no split {split!r}; splits: {list(builder.info.splits)}")
+    _check_split(builder, builder_dir, split)
     self.builder_dir, self.split = os.fspath(builder_dir), split
-    self.spec = resolve(builder, name)
+    self.spec = resolve(builder, spec)
     self._length = builder.info.splits[split].num_examples
+    self._flag_keys = [k for k, f in oxe.feature_leaves(builder.info.features).items()
+                       if k.startswith("episode_metadata/has_") and np.dtype(f.np_dtype) == bool]
     self._source = None
+    self._lengths = None
 
   def __getstate__(self):
     return dict(self.__dict__, _source=None)
@@ -93,64 +137,122 @@ class ArrayRecordEpisodes:
   def __len__(self) -> int:
     return self._length
 
-  def _steps(self, index: int):
+  def _record(self, index: int):
     if self._source is None:
       builder = open_builder(self.builder_dir)
       self._source = builder.as_data_source(split=self.split,
                                             decoders=skip_image_decoding(self.spec))
-    return self._source[index]["steps"]
+    return self._source[index]
 
   def episode(self, index: int, start: int = 0, stop: int | None = None) -> Episode:
-    """Episode ``index``, optionally only its steps ``[start, stop)``."""
-    steps = self._steps(index)
-    stop = len(steps) if stop is None else stop
-    return Episode.from_steps(self.spec, stack_steps([steps[i] for i in range(start, stop)]), start)
+    """Episode ``index``, optionally only its (subsampled) steps ``[start, stop)``."""
+    steps = self._record(index)["steps"]
+    k = self.spec.frame_step
+    stop = len(steps) if stop is None else min(stop * k, len(steps))
+    return Episode.from_steps(self.spec, stack_steps([steps[i] for i in range(start * k, stop)]),
+                              start)
+
+  def _index(self) -> dict:
+    """Raw lengths and ``episode_metadata/has_*`` flags of every episode, read once and cached
+    as JSON."""
+    filename = f"wmjax_episodes-{_split_name(self.split)}.json"
+    cached = read_cached_json(self.builder_dir, filename)
+    if (not isinstance(cached, dict) or cached.get("split") != self.split
+        or len(cached["lengths"]) != len(self)):
+      records = (self._record(i) for i in range(len(self)))
+      index = {"split": self.split, "lengths": [], "flags": {k: [] for k in self._flag_keys}}
+      for record in records:
+        index["lengths"].append(len(record["steps"]))
+        for key in self._flag_keys:
+          index["flags"][key].append(bool(oxe.get_path(record, key)))
+      cached = index
+      write_cached_json(self.builder_dir, filename, cached)
+    return cached
 
   def lengths(self) -> np.ndarray:
-    """Number of steps of every episode (read once, then cached as JSON)."""
-    filename = f"wmjax_lengths-{self.split}.json"
-    cached = read_cached_json(self.builder_dir, filename)
-    if cached is None or len(cached) != len(self):
-      cached = [len(self._steps(i)) for i in range(len(self))]
-      write_cached_json(self.builder_dir, filename, cached)
-    return np.asarray(cached, np.int64)
+    """Number of (subsampled) steps of every episode; 0 for those without the spec's camera."""
+    if self._lengths is None:
+      index = self._index()
+      k = self.spec.frame_step
+      lengths = -(-np.asarray(index["lengths"], np.int64) // k)
+      where = f"{self.builder_dir} [{self.split}]"
+      missing = np.asarray([_missing_camera(self.spec, {key: index["flags"][key][e]
+                                                        for key in self.spec.image_flags},
+                                            f"{where} episode {e}")
+                            for e in range(len(lengths))], bool)
+      _log_skipped(where, self.spec, int(missing.sum()), len(lengths))
+      self._lengths = np.where(missing, 0, lengths)
+    return self._lengths
 
 
-def tfrecord_episodes(builder_dir: str, split: str, name: str | None = None,
+def tfrecord_episodes(builder_dir: str, split: str, spec: SpecArg = None,
                       shuffle_files: bool = False) -> Iterator[Episode]:
-  """Stream the episodes of a TFRecord (or ArrayRecord) RLDS split with tf.data, in file order."""
+  """Stream the episodes of a TFRecord RLDS split with tf.data, in file order (ArrayRecord is
+  read by :class:`ArrayRecordEpisodes`; :func:`read_episodes` picks the path). Episodes without
+  the spec's camera are skipped (counted in the log) or an error, as in
+  :class:`ArrayRecordEpisodes`."""
+  builder = open_builder(builder_dir)
+  if builder.info.file_format.value != "tfrecord":
+    raise ValueError(f"{builder_dir} is stored as {builder.info.file_format.value}; tf.data reads "
+                     f"TFRecord only: read it with ArrayRecordEpisodes (or read_episodes)")
+  _check_split(builder, builder_dir, split)
   try:
     import tensorflow as tf
   except ImportError as e:
     raise ImportError("the tf.data path needs TensorFlow: pip install 'wmjax[tf]'") from e
-  builder = open_builder(builder_dir)
-  spec = resolve(builder, name)
+  spec = resolve(builder, spec)
   ds = builder.as_dataset(split=split, decoders=skip_image_decoding(spec),
                           shuffle_files=shuffle_files)
-  ds = ds.map(lambda episode: tf.data.Dataset.get_single_element(
-      episode["steps"].batch(2 ** 31 - 1)), num_parallel_calls=tf.data.AUTOTUNE,
-              deterministic=True)
-  for steps in tfds.as_numpy(ds):
+
+  def batch_steps(episode):
+    steps = tf.data.Dataset.get_single_element(episode["steps"].batch(2 ** 31 - 1))
+    return steps, {key: oxe.get_path(episode, key) for key in spec.image_flags}
+
+  ds = ds.map(batch_steps, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+  where = f"{builder_dir} [{split}]"
+  skipped = total = 0
+  for index, (steps, flags) in enumerate(tfds.as_numpy(ds)):
+    total += 1
+    if _missing_camera(spec, flags, f"{where} episode {index}"):
+      skipped += 1
+      continue
     yield Episode.from_steps(spec, steps)
+  _log_skipped(where, spec, skipped, total)
 
 
-def action_stats(builder_dir: str, split: str = "train", name: str | None = None,
+def read_episodes(builder_dir: str, split: str, spec: SpecArg = None) -> Iterator[Episode]:
+  """Every episode of a split that has the spec's camera, in order, by the path its file format
+  needs (ArrayRecord: random access; TFRecord: tf.data)."""
+  if open_builder(builder_dir).info.file_format.value == "array_record":
+    source = ArrayRecordEpisodes(builder_dir, split, spec)
+    return (source.episode(i) for i, n in enumerate(source.lengths()) if n > 0)
+  return tfrecord_episodes(builder_dir, split, spec)
+
+
+def stats_filename(split: str, spec: oxe.DatasetSpec) -> str:
+  """Statistics are cached per split and spec (``train[:2]`` never reads ``train``'s)."""
+  key = hashlib.sha1(f"{split}|{spec.digest()}".encode()).hexdigest()[:12]
+  return f"wmjax_action_stats-{_split_name(split)}-{key}.json"
+
+
+def action_stats(builder_dir: str, split: str = "train", spec: SpecArg = None,
                  recompute: bool = False) -> ActionStats:
-  """The split's action statistics, computed on first use and cached as JSON beside the data."""
-  cached = None if recompute else read_cached_json(builder_dir, STATS_FILE)
+  """The action statistics of exactly the episodes of ``split`` (e.g. ``train[:95%]``) read with
+  ``spec``, computed on first use and cached as JSON beside the data (:func:`stats_filename`)."""
+  builder = open_builder(builder_dir)
+  _check_split(builder, builder_dir, split)
+  resolved = resolve(builder, spec)
+  filename = stats_filename(split, resolved)
+  cached = None if recompute else read_cached_json(builder_dir, filename)
   if cached is not None:
     return ActionStats.from_dict(cached)
-  builder = open_builder(builder_dir)
-  spec = resolve(builder, name)
-  if builder.info.file_format.value == "array_record":
-    source = ArrayRecordEpisodes(builder_dir, split, name)
-    episodes = (source.episode(i) for i in range(len(source)))
-  else:
-    episodes = tfrecord_episodes(builder_dir, split, name)
   # The last step's action leads nowhere and never enters a window.
-  actions = [e.actions[:-1] for e in episodes]
-  stats = ActionStats.compute(np.concatenate(actions), spec.name, spec.gripper_dim)
-  write_cached_json(builder_dir, STATS_FILE, stats.to_dict())
+  actions = [e.actions[:-1] for e in read_episodes(builder_dir, split, resolved)]
+  if not actions:
+    raise ValueError(f"{builder_dir} [{split}] has no episode to compute action statistics from")
+  stats = ActionStats.compute(np.concatenate(actions), resolved.name, resolved.gripper_dim)
+  write_cached_json(builder_dir, filename, dict(stats.to_dict(), split=split,
+                                                spec=resolved.to_dict()))
   return stats
 
 
@@ -167,8 +269,7 @@ def dataset_dir(data: ml_collections.ConfigDict) -> str:
     params_class, prepare = GENERATED[data.dataset]
     params = params_class(**data.get(data.dataset, {}))
     return prepare(os.path.expanduser(data.data_dir), params)
-  if data.dataset not in oxe.SPECS:
-    raise ValueError(f"unknown dataset {data.dataset!r}; known: {sorted(oxe.SPECS)}")
+  oxe.specs_from_config(data)  # an unknown dataset without a spec fails here, clearly
   if not data.get("builder_dir"):
     raise ValueError(f"config.data.builder_dir must point at the ArrayRecord builder directory "
                      f"of {data.dataset} (see `wmjax data convert`)")

@@ -1,5 +1,6 @@
-"""Per-dataset action statistics: computed once, cached as JSON beside the data, carried by
-checkpoints so that rollouts of new actions use the training normalisation.
+"""Per-dataset action statistics: computed once per split and spec, cached as JSON beside the
+data (:func:`wmjax.data.sources.action_stats`), carried by checkpoints so that rollouts of new
+actions use the training normalisation.
 
 Normalisation modes: ``mean_std`` -> ``(a - mean) / std``; ``bounds`` -> ``p01, p99`` mapped to
 ``[-1, 1]`` and clipped; ``none``. The gripper dimension (absolute open / close) is left alone.
@@ -12,7 +13,6 @@ import dataclasses
 import numpy as np
 
 NORMALIZATIONS = ("mean_std", "bounds", "none")
-STATS_FILE = "wmjax_action_stats.json"
 
 
 @dataclasses.dataclass(frozen=True)

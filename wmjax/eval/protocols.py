@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmjax.data import gridworld
+from wmjax.data import gridworld, oxe
 from wmjax.data.pipeline import WindowSource
 from wmjax.data.rlds import make_window
 from wmjax.data.sources import ArrayRecordEpisodes, dataset_dir
@@ -100,7 +100,8 @@ def whole_episodes(episodes: ArrayRecordEpisodes, resolution, min_length: int,
   """Every episode of at least ``min_length`` steps, whole (IRASim's long trajectories)."""
   lengths = episodes.lengths()
   chosen = [e for e in range(len(lengths)) if lengths[e] >= min_length][:limit]
-  return [make_window(episodes.episode(e), 0, int(lengths[e]), resolution, e) for e in chosen]
+  return [make_window(episodes.episode(e), 0, int(lengths[e]), resolution, e,
+                      episodes.spec.resize) for e in chosen]
 
 
 def _as_masks(masks: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -441,7 +442,7 @@ def evaluate_checkpoint(workdir: str, *, split: str, out: str | None = None,
                      param_dtype=param_dtype)
   config = model.config
   data = member_configs(config.data)[0]  # a mixture is evaluated on its first dataset
-  episodes = ArrayRecordEpisodes(dataset_dir(data), split, data.dataset)
+  episodes = ArrayRecordEpisodes(dataset_dir(data), split, oxe.specs_from_config(data))
   if mask_key:
     episodes.spec = dataclasses.replace(episodes.spec,
                                         extra_keys=episodes.spec.extra_keys + (mask_key,))

@@ -2,10 +2,11 @@
 as RGB frames encoded by the codec on the device or as pre-encoded latents.
 
 ``config.data`` names one dataset (``dataset``, ``builder_dir`` or the generated gridworld,
-``latents_dir``) or, with ``mixture``, several: ``mixture.<dataset> = {builder_dir, weight,
-latents_dir}`` entries that inherit the rest of ``config.data`` (frames, strides, resolution,
-normalisation). Each member is normalised with its own action statistics and its actions are
-zero-padded to ``model.action_dim``.
+``latents_dir``; ``spec`` / ``image_key`` / ``resize`` to read it, see
+:func:`wmjax.data.oxe.specs_from_config`) or, with ``mixture``, several: ``mixture.<dataset> =
+{builder_dir, weight, latents_dir, spec, image_key}`` entries that inherit the rest of
+``config.data`` (frames, strides, resolution, resize, normalisation). Each member is normalised
+with its own action statistics and its actions are zero-padded to ``model.action_dim``.
 """
 
 from __future__ import annotations
@@ -56,7 +57,8 @@ def member_configs(data: ml_collections.ConfigDict) -> list[ml_collections.Confi
   mixture = data.get("mixture")
   if not mixture:
     return [data]
-  base = {k: v for k, v in data.to_dict().items() if k != "mixture"}
+  # a dataset's own reading (spec, camera) is not inherited by the others
+  base = {k: v for k, v in data.to_dict().items() if k not in ("mixture", "spec", "image_key")}
   members = []
   for name, entry in mixture.items():
     member = ml_collections.ConfigDict(dict(base, dataset=name, builder_dir="", latents_dir="",
@@ -84,10 +86,10 @@ def _open_latents(data: ml_collections.ConfigDict, config: ml_collections.Config
 def _open_frames(data: ml_collections.ConfigDict, config: ml_collections.ConfigDict,
                  codec: Codec):
   builder_dir = dataset_dir(data)
-  train_episodes = ArrayRecordEpisodes(builder_dir, data.get("train_split", "train"),
-                                       data.dataset)
-  eval_episodes = ArrayRecordEpisodes(builder_dir, data.get("eval_split", "test"), data.dataset)
-  stats = action_stats(builder_dir, train_episodes.split, data.dataset)
+  specs = oxe.specs_from_config(data)
+  train_episodes = ArrayRecordEpisodes(builder_dir, data.get("train_split", "train"), specs)
+  eval_episodes = ArrayRecordEpisodes(builder_dir, data.get("eval_split", "test"), specs)
+  stats = action_stats(builder_dir, train_episodes.split, specs)
   resolution = tuple(data.get("resolution") or train_episodes.spec.resolution)
   if tuple(config.frame_shape) != codec.latent_shape(resolution + (3,)):
     raise ValueError(f"frame_shape {tuple(config.frame_shape)} does not match what the codec "
