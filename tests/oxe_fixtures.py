@@ -114,10 +114,10 @@ def make_step(name: str, t: int, length: int, episode: int, rng) -> dict:
   step = {"is_first": t == 0, "is_last": t == length - 1, "is_terminal": t == length - 1,
           "reward": float(t == length - 1)}
   obs = {}
-  for key in features["observation"].keys():
+  for camera, key in enumerate(features["observation"].keys()):
     feature = features["observation"][key]
-    if isinstance(feature, F.Image):
-      obs[key] = _smooth_image(feature.shape, 100 * episode + t)
+    if isinstance(feature, F.Image):  # each camera its own picture
+      obs[key] = _smooth_image(feature.shape, 100 * episode + t + 7 * camera)
     elif key == "instruction":  # Language-Table: zero-padded UTF-8 bytes
       codes = np.zeros(512, np.int32)
       codes[:len(instruction.encode())] = list(instruction.encode())
@@ -138,8 +138,12 @@ def make_step(name: str, t: int, length: int, episode: int, rng) -> dict:
 EPISODE_LENGTHS = (5, 3, 7)  # the 3-step episode is shorter than the tests' 4-frame windows
 
 
-def build(name: str, data_dir: str, file_format: str = "tfrecord") -> str:
-  """Write the fixture ``name`` (its ``train`` split) under ``data_dir``; returns the builder dir."""
+def build(name: str, data_dir: str, file_format: str = "tfrecord",
+          absent_cameras: dict[int, tuple[int, ...]] | None = None) -> str:
+  """Write the fixture ``name`` (its ``train`` split) under ``data_dir``; returns the builder dir.
+  ``absent_cameras``: episode -> camera numbers whose ``has_image_<i>`` is false (and whose
+  frames are black, as Open-X stores them)."""
+  absent_cameras = absent_cameras or {}
 
   def _info(self):
     return tfds.core.DatasetInfo(builder=self, features=F.FeaturesDict(FEATURES[name]))
@@ -151,10 +155,13 @@ def build(name: str, data_dir: str, file_format: str = "tfrecord") -> str:
     rng = np.random.default_rng(0)
     for e, length in enumerate(EPISODE_LENGTHS):
       example = {"steps": [make_step(name, t, length, e, rng) for t in range(length)]}
+      for i in absent_cameras.get(e, ()):
+        for step in example["steps"]:
+          step["observation"][f"image_{i}"] = np.zeros_like(step["observation"][f"image_{i}"])
       if "episode_metadata" in FEATURES[name]:
         example["episode_metadata"] = {
             "episode_id": e, "file_path": f"/data/{e}", "has_language": bool(INSTRUCTIONS[e % 3]),
-            **{f"has_image_{i}": True for i in range(4)}}
+            **{f"has_image_{i}": i not in absent_cameras.get(e, ()) for i in range(4)}}
       yield e, example
 
   namespace = {"name": name, "VERSION": tfds.core.Version("0.1.0"), "_info": _info,

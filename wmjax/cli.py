@@ -11,6 +11,8 @@
   wmjax data convert SRC_BUILDER_DIR DST_DIR
   wmjax data encode --config FILE --out DIR [--splits train,test]
   wmjax data stats BUILDER_DIR [--split train] [--recompute]
+  wmjax data inspect BUILDER_DIR
+  wmjax data import lerobot SRC OUT [--camera KEY]
 
 Config overrides use ``--config.dotted.key=value`` with Python literal values (train, evaluate,
 rollout, eval-policy, plan, info, data encode); an unknown key or flag is an error.
@@ -282,11 +284,32 @@ def cmd_data_convert(args, extra) -> int:
 
 
 def cmd_data_stats(args, extra) -> int:
-  """Compute (or show the cached) action statistics and episode lengths of a dataset."""
+  """Compute (or show the cached) action statistics of a dataset split (cached per split and
+  spec: those of train[:95%] are of exactly those episodes)."""
   del extra
   from wmjax.data.sources import action_stats
   stats = action_stats(args.builder_dir, args.split, args.name, recompute=args.recompute)
-  print(json.dumps(stats.to_dict(), indent=2))
+  print(json.dumps(dict(stats.to_dict(), split=args.split), indent=2))
+  return 0
+
+
+def cmd_data_inspect(args, extra) -> int:
+  """Print a prepared TFDS dataset's splits and features, and a suggested dataset spec
+  (config.data.spec) to train on it with no code."""
+  del extra
+  from wmjax.data.describe import describe
+  from wmjax.data.sources import open_builder
+  print(describe(open_builder(args.builder_dir)))
+  return 0
+
+
+def cmd_data_import(args, extra) -> int:
+  """Import a local LeRobot dataset (meta/info.json, data/**/*.parquet, videos/**/*.mp4; v2.x or
+  v3 layout) as an RLDS dataset in ArrayRecord; prints the builder directory. Train on it with
+  configs/rlds.py and --config.data.builder_dir=OUT."""
+  del extra
+  from wmjax.data.lerobot import import_lerobot
+  print(import_lerobot(args.src, args.out, camera=args.camera))
   return 0
 
 
@@ -297,6 +320,7 @@ def cmd_data_encode(args, extra) -> int:
 
   from wmjax.codecs import make_codec
   from wmjax.data.latents import codec_description, encode_dataset
+  from wmjax.data.oxe import specs_from_config
   from wmjax.data.sources import ArrayRecordEpisodes, action_stats, dataset_dir
   from wmjax.env import frames_to_model
   from wmjax.train.data import member_configs
@@ -314,11 +338,12 @@ def cmd_data_encode(args, extra) -> int:
   builder_dir = dataset_dir(data)
   splits = args.splits.split(",") if args.splits else [data.get("train_split", "train"),
                                                        data.get("eval_split", "test")]
-  spec = ArrayRecordEpisodes(builder_dir, splits[0], data.dataset).spec
+  specs = specs_from_config(data)
+  spec = ArrayRecordEpisodes(builder_dir, splits[0], specs).spec
   resolution = tuple(data.get("resolution") or spec.resolution)
-  stats = action_stats(builder_dir, data.get("train_split", "train"), data.dataset)
+  stats = action_stats(builder_dir, data.get("train_split", "train"), specs)
   keys = (jax.random.fold_in(jax.random.key(args.seed), i) for i in itertools.count())
-  out = encode_dataset(builder_dir, args.out, splits, data.dataset, resolution,
+  out = encode_dataset(builder_dir, args.out, splits, specs, resolution,
                        lambda frames: np.asarray(codec.encode(frames_to_model(frames), next(keys))),
                        codec_description(config.get("codec")), stats.to_dict())
   print(out)
@@ -371,6 +396,24 @@ def _add_data_commands(sub) -> None:
   stats.add_argument("--name", default=None, help="dataset spec name (default: the builder's)")
   stats.add_argument("--recompute", action="store_true")
   _register(stats, cmd_data_stats)
+
+  inspect = data_sub.add_parser("inspect", help="features of a TFDS dataset and a suggested spec",
+                                description=cmd_data_inspect.__doc__)
+  inspect.add_argument("builder_dir")
+  _register(inspect, cmd_data_inspect)
+
+  import_ = data_sub.add_parser("import", help="bring another format in as RLDS (ArrayRecord)",
+                                description=cmd_data_import.__doc__)
+  import_sub = import_.add_subparsers(dest="format", required=True)
+  lerobot = import_sub.add_parser("lerobot", help="a local LeRobot dataset (v2.x or v3)",
+                                  description=cmd_data_import.__doc__)
+  lerobot.add_argument("src", help="LeRobot dataset directory (with meta/info.json)")
+  lerobot.add_argument("out", help="output builder directory (must not exist)")
+  lerobot.add_argument("--camera", default=None,
+                       help="camera feature stored as observation/image, e.g. "
+                            "observation.images.top (default: the first); every camera is also "
+                            "kept as observation/<name>")
+  _register(lerobot, cmd_data_import)
 
 
 def main(argv: list[str] | None = None) -> int:

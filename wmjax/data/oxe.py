@@ -187,11 +187,14 @@ class DatasetSpec:
 
 def spec_config(**fields):
   """An ``ml_collections.ConfigDict`` of every :class:`DatasetSpec` field (its schema), default
-  values updated by ``fields`` — what ``config.data.spec`` holds."""
+  values updated by ``fields`` — what ``config.data.spec`` holds (checked when it is used; empty
+  ``action_keys`` mean "the built-in spec of ``data.dataset``")."""
   import ml_collections
-  spec = DatasetSpec(**{"name": "", **fields}).to_dict()
-  return ml_collections.ConfigDict({k: tuple(v) if isinstance(v, list) else v
-                                    for k, v in spec.items()})
+  defaults = {f.name: f.default for f in dataclasses.fields(DatasetSpec)}
+  unknown = set(fields) - set(defaults)
+  if unknown:
+    raise ValueError(f"unknown dataset spec fields {sorted(unknown)}; known: {sorted(defaults)}")
+  return ml_collections.ConfigDict(dict(defaults, name="", **fields))
 
 
 _RT1_ACTION = ("action/world_vector", "action/rotation_delta", "action/gripper_closedness_action")
@@ -214,6 +217,9 @@ SPECS: dict[str, tuple[DatasetSpec, ...]] = {
         "language_table", "oxe", ("observation/rgb",), instruction_key="observation/instruction",
         instruction_encoding="utf8_codes", action_dim=2, resolution=(288, 512)),),
 }
+# `wmjax data import lerobot` output: the chosen camera is observation/image, every camera is
+# also observation/<name> (data.image_key picks another).
+SPECS["lerobot"] = (DatasetSpec("lerobot", "wmjax_import"),)
 SPECS["bridge_dataset"] = tuple(dataclasses.replace(s, name="bridge_dataset")
                                 for s in SPECS["bridge"])
 
@@ -234,9 +240,9 @@ def specs_from_config(data: Mapping[str, Any]) -> tuple[DatasetSpec, ...]:
   ``data.image_key`` (str or tuple, ``""`` keeps the spec's), ``data.resize``,
   ``data.missing_image`` and ``data.frame_step`` where set."""
   name = data.get("dataset") or ""
-  given = data.get("spec")
-  if given:
-    given = dict(given.to_dict() if hasattr(given, "to_dict") else given)
+  given = data.get("spec") or {}
+  given = dict(given.to_dict() if hasattr(given, "to_dict") else given)
+  if given.get("action_keys"):
     candidates = (DatasetSpec.from_dict({**given, "name": given.get("name") or name}),)
   elif name in SPECS:
     candidates = SPECS[name]

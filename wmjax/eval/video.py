@@ -13,6 +13,7 @@ import imageio_ffmpeg
 import numpy as np
 from PIL import Image
 
+from wmjax.data.videoio import read_video  # noqa: F401 (part of this module's interface)
 from wmjax.eval.metrics import to_uint8
 
 VIDEO_FORMATS = (".mp4", ".gif")
@@ -86,23 +87,6 @@ def write_video(path: str, video, fps: float = 4.0, scale: int | None = None) ->
     writer.send(np.ascontiguousarray(frame))
   writer.close()
   return path
-
-
-def read_video(path: str) -> np.ndarray:
-  """uint8 ``[T, H, W, 3]`` from an mp4 (or anything ffmpeg reads) or a GIF."""
-  if path.lower().endswith(".gif"):
-    with Image.open(path) as image:
-      frames = []
-      for index in range(image.n_frames):
-        image.seek(index)
-        frames.append(np.asarray(image.convert("RGB")))
-    return np.stack(frames)
-  reader = imageio_ffmpeg.read_frames(path)
-  with warnings.catch_warnings():
-    warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
-    meta = next(reader)
-  width, height = meta["size"]
-  return np.stack([np.frombuffer(f, np.uint8).reshape(height, width, 3) for f in reader])
 
 
 def frame_grid(videos, gap: int = 2, scale: int | None = None) -> np.ndarray:

@@ -1,0 +1,317 @@
+"""Issue 18: dataset specs as config, camera choice, per-split statistics, aspect-preserving
+resizing, one too-short error on both read paths, `wmjax data inspect`, LeRobot import."""
+
+import io
+import json
+import logging
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from PIL import Image
+
+import oxe_fixtures
+from wmjax.data import gridworld, oxe
+from wmjax.data.convert import convert_to_array_record
+from wmjax.data.lerobot import import_lerobot
+from wmjax.data.pipeline import WindowSource
+from wmjax.data.rlds import stream_windows
+from wmjax.data.sources import (ArrayRecordEpisodes, action_stats, read_episodes,
+                                tfrecord_episodes)
+from wmjax.data.videoio import read_video
+from wmjax.eval.video import write_video
+
+
+def _cli(*args):
+  return subprocess.run([sys.executable, "-m", "wmjax.cli", *args], capture_output=True,
+                        text=True, check=True).stdout
+
+
+@pytest.fixture(scope="module")
+def bridge(tmp_path_factory):
+  """Bridge in the current layout, episode 0 without camera 3: (TFRecord dir, ArrayRecord dir)."""
+  root = tmp_path_factory.mktemp("bridge")
+  tfrecord = oxe_fixtures.build("bridge_dataset", str(root / "tfrecord"), absent_cameras={0: (3,)})
+  return tfrecord, str(convert_to_array_record(tfrecord, root / "array_record"))
+
+
+@pytest.fixture(scope="module")
+def fractal(tmp_path_factory):
+  root = tmp_path_factory.mktemp("fractal")
+  tfrecord = oxe_fixtures.build("fractal20220817_data", str(root / "tfrecord"))
+  return tfrecord, str(convert_to_array_record(tfrecord, root / "array_record"))
+
+
+@pytest.fixture(scope="module")
+def grid(tmp_path_factory):
+  config = gridworld.GridworldConfig(train_episodes=6, test_episodes=3, episode_length=8)
+  return gridworld.prepare(str(tmp_path_factory.mktemp("grid")), config)
+
+
+def test_statistics_are_per_split(grid):
+  """Failure 1: the test split's statistics were the train split's; train[:2] counted every
+  train episode."""
+  train = json.loads(_cli("data", "stats", grid))
+  test = json.loads(_cli("data", "stats", grid, "--split", "test"))
+  assert (train["count"], test["count"]) == (6 * 7, 3 * 7)  # the last step of each is left out
+  assert train["split"] == "train" and test["split"] == "test" and train["mean"] != test["mean"]
+  first_two = action_stats(grid, "train[:2]")
+  actions = np.concatenate([e.actions[:-1] for e in read_episodes(grid, "train[:2]")])
+  assert first_two.count == 2 * 7 == len(actions)
+  np.testing.assert_allclose(first_two.mean, actions.mean(0), rtol=1e-5)
+  assert action_stats(grid, "train").count == 6 * 7  # still its own after train[:2]
+
+
+def test_camera_choice_skips_episodes_without_it(bridge, caplog):
+  """Failure 2: data.image_key was ignored, and a camera an episode lacks gave black frames."""
+  tfrecord_dir, array_record_dir = bridge
+  specs = oxe.specs_from_config({"dataset": "bridge_dataset", "image_key": "observation/image_3"})
+  with caplog.at_level(logging.WARNING):
+    episodes = ArrayRecordEpisodes(array_record_dir, "train", specs)
+    source = WindowSource(episodes, 4, 2, None)
+  assert episodes.spec.image_keys == ("observation/image_3",)
+  assert episodes.spec.image_flags == ("episode_metadata/has_image_3",)
+  assert "skipped 1 of 3 episodes without the camera" in caplog.text
+  assert episodes.lengths().tolist() == [0, 3, 7]
+  assert {int(e) for e, _ in source.index} == {2}
+  window = source[0]
+  assert window["frames"].max() > 0  # never the black frames episode 0 holds for camera 3
+  def distance(camera):  # to camera's picture (JPEG is lossy)
+    raw = oxe_fixtures._smooth_image((256, 256, 3), 100 * 2 + 0 + 7 * camera)
+    return np.abs(window["frames"][0].astype(int) - raw).mean()
+  assert distance(3) < 3 < distance(0)
+  streamed = list(stream_windows(tfrecord_episodes(tfrecord_dir, "train", specs), 4, 2, None))
+  assert len(streamed) == len(source) == 2
+  np.testing.assert_array_equal(streamed[0]["frames"], window["frames"])
+  # camera 0 exists everywhere: nothing is skipped
+  assert ArrayRecordEpisodes(array_record_dir, "train", "bridge_dataset").lengths().tolist() == [5, 3, 7]
+  strict = oxe.specs_from_config({"dataset": "bridge_dataset", "image_key": "observation/image_3",
+                                  "missing_image": "error"})
+  with pytest.raises(ValueError, match=r"episode 0 lacks the camera.*has_image_3"):
+    ArrayRecordEpisodes(array_record_dir, "train", strict).lengths()
+  with pytest.raises(ValueError, match=r"episode 0 lacks the camera"):
+    list(tfrecord_episodes(tfrecord_dir, "train", strict))
+  with pytest.raises(ValueError, match="observation/image_9"):
+    ArrayRecordEpisodes(array_record_dir, "train", oxe.specs_from_config(
+        {"dataset": "bridge_dataset", "image_key": "observation/image_9"}))
+
+
+def test_several_views_and_fallbacks(bridge):
+  _, array_record_dir = bridge
+  specs = oxe.specs_from_config({"dataset": "bridge_dataset",
+                                 "image_key": ("observation/image_1", "observation/wrist|observation/image_2")})
+  episodes = ArrayRecordEpisodes(array_record_dir, "train", specs)
+  assert episodes.spec.image_keys == ("observation/image_1", "observation/image_2")
+  frames = WindowSource(episodes, 4, 2, (64, 128))[0]["frames"]
+  assert frames.shape == (4, 64, 128, 3)
+  left = WindowSource(ArrayRecordEpisodes(array_record_dir, "train", oxe.specs_from_config(
+      {"dataset": "bridge_dataset", "image_key": "observation/image_1"})), 4, 2, (64, 64))[0]
+  np.testing.assert_array_equal(frames[:, :, :64], left["frames"])
+
+
+def test_tfrecord_episodes_says_what_it_reads(bridge):
+  """Failure 3: tfrecord_episodes claimed to read ArrayRecord and raised NotImplementedError."""
+  tfrecord_dir, array_record_dir = bridge
+  with pytest.raises(ValueError, match="tf.data reads TFRecord only: read it with ArrayRecordEpisodes"):
+    next(tfrecord_episodes(array_record_dir, "train"))
+  a = [e.actions for e in read_episodes(array_record_dir, "train")]
+  b = [e.actions for e in read_episodes(tfrecord_dir, "train")]
+  assert len(a) == len(b) == 3
+  for x, y in zip(a, b):
+    np.testing.assert_array_equal(x, y)
+
+
+def test_too_short_episodes_give_the_same_error_on_both_paths(bridge):
+  """Failure 4: grain raised, tf.data yielded 0 windows silently."""
+  tfrecord_dir, array_record_dir = bridge
+  with pytest.raises(ValueError) as grain_error:
+    WindowSource(ArrayRecordEpisodes(array_record_dir, "train"), 8, 1, None)
+  with pytest.raises(ValueError) as tf_error:
+    list(stream_windows(tfrecord_episodes(tfrecord_dir, "train"), 8, 1, None,
+                        where=f"{array_record_dir} [train]"))
+  assert str(grain_error.value) == str(tf_error.value)
+  assert "no episode of at least 8 steps (3 episodes)" in str(tf_error.value)
+
+
+@pytest.mark.parametrize("resize", ["crop", "pad"])
+def test_resizing_keeps_the_aspect_ratio(bridge, resize):
+  """Failure 5: Bridge's 256x256 frames were stretched to 256x320."""
+  _, array_record_dir = bridge
+  specs = oxe.specs_from_config({"dataset": "bridge_dataset", "resize": resize})
+  episodes = ArrayRecordEpisodes(array_record_dir, "train", specs)
+  assert episodes.spec.resolution == (256, 320)
+  frames = WindowSource(episodes, 4, 2, episodes.spec.resolution)[0]["frames"]
+  assert frames.shape == (4, 256, 320, 3)
+  original = Image.open(io.BytesIO(episodes.episode(0).images[0])).convert("RGB")
+  if resize == "pad":  # unscaled in the middle, black bars of 32 px on each side
+    assert (frames[0, :, :32] == 0).all() and (frames[0, :, -32:] == 0).all()
+    np.testing.assert_array_equal(frames[0, :, 32:-32], np.asarray(original))
+  else:  # the central 256x205 rows, scaled by 1.25 both ways
+    expected = original.resize((320, 256), Image.BILINEAR, box=(0, 25, 256, 230))
+    np.testing.assert_array_equal(frames[0], np.asarray(expected))
+    stretched = np.asarray(original.resize((320, 256), Image.BILINEAR))
+    assert np.abs(frames[0].astype(int) - stretched).mean() > 2
+
+
+def test_a_spec_in_config_reads_like_the_built_in_one(fractal):
+  """An RLDS dataset read from a config spec alone: same windows as the built-in spec; action
+  transforms and frame subsampling."""
+  _, array_record_dir = fractal
+  keys = ("action/world_vector", "action/rotation_delta", "action/gripper_closedness_action")
+  config = {"dataset": "my_robot", "spec": dict(
+      image_keys=("observation/image",), instruction_key="observation/natural_language_instruction",
+      action_keys=keys, gripper_dim=6)}
+  built_in = WindowSource(ArrayRecordEpisodes(array_record_dir, "train"), 4, 2, (32, 40))
+  mine_episodes = ArrayRecordEpisodes(array_record_dir, "train", oxe.specs_from_config(config))
+  mine = WindowSource(mine_episodes, 4, 2, (32, 40))
+  assert mine_episodes.spec.name == "my_robot" and mine_episodes.spec.action_dim == 7
+  for k in range(len(built_in)):
+    for key in ("frames", "actions", "instruction"):
+      np.testing.assert_array_equal(built_in[k][key], mine[k][key])
+  raw = ArrayRecordEpisodes(array_record_dir, "train").episode(2).actions
+  inverted = ArrayRecordEpisodes(array_record_dir, "train", oxe.specs_from_config(
+      {**config, "spec": dict(config["spec"], action_transforms=("", "negate", "invert"))}))
+  np.testing.assert_allclose(inverted.episode(2).actions,
+                             np.concatenate([raw[:, :3], -raw[:, 3:6], 1 - raw[:, 6:]], 1))
+  halved = ArrayRecordEpisodes(array_record_dir, "train", oxe.specs_from_config(
+      {**config, "frame_step": 2}))
+  assert halved.lengths().tolist() == [3, 2, 4]
+  sub = halved.episode(2)  # steps 0, 2, 4, 6 of 7
+  np.testing.assert_allclose(sub.actions[1, :6], raw[2:4, :6].sum(0), rtol=1e-6)
+  assert sub.actions[1, 6] == raw[3, 6] and sub.actions[3, 6] == raw[6, 6]
+  assert sub.images == ArrayRecordEpisodes(array_record_dir, "train").episode(2).images[::2]
+  assert halved.episode(2, 1, 3).images == sub.images[1:3]
+  with pytest.raises(ValueError, match="unknown action_transforms"):
+    oxe.specs_from_config({**config, "spec": dict(config["spec"], action_transforms=("", "", "x"))})
+  with pytest.raises(ValueError, match="no config.data.spec"):
+    oxe.specs_from_config({"dataset": "my_robot"})
+
+
+def test_inspect_prints_features_and_a_spec_that_reads(fractal):
+  _, array_record_dir = fractal
+  out = _cli("data", "inspect", array_record_dir)
+  assert "observation/natural_language_instruction" in out and "Image[256, 320, 3] uint8" in out
+  assert "train (3 episodes)" in out and "--config.data.spec.action_keys=" in out
+  from wmjax.data.describe import suggest_spec
+  from wmjax.data.sources import open_builder
+  spec = suggest_spec("fractal", open_builder(array_record_dir).info.features)
+  assert spec.action_keys[-1] == "action/gripper_closedness_action"
+  assert (spec.action_dim, spec.gripper_dim) == (10, 9)  # base 2 + 1, rotation 3, world 3, gripper
+  assert spec.instruction_key == "observation/natural_language_instruction"
+  episodes = ArrayRecordEpisodes(array_record_dir, "train", spec)
+  assert episodes.episode(0).instruction == oxe_fixtures.INSTRUCTIONS[0]
+
+
+# ----------------------------------------------------------------------------- LeRobot
+
+FPS, SIZE, LENGTHS = 10, 16, (5, 6, 4)
+TASKS = ("stack the cups", "open the drawer", "stack the cups")
+
+
+def _lerobot_frames(episode, length, camera):
+  t = np.arange(length)[:, None, None, None]
+  y, x = np.mgrid[0:SIZE, 0:SIZE]
+  base = np.stack([x * 15, y * 15, np.full_like(x, 60 * episode + 100 * camera)], -1)[None]
+  return ((base + 20 * t) % 256).astype(np.uint8)
+
+
+def _lerobot_rows(episode, length, start_index):
+  rng = np.random.default_rng(episode)
+  return {"action": rng.normal(size=(length, 2)).astype(np.float32).tolist(),
+          "observation.state": rng.normal(size=(length, 3)).astype(np.float32).tolist(),
+          "timestamp": (np.arange(length) / FPS).tolist(), "frame_index": list(range(length)),
+          "episode_index": [episode] * length,
+          "index": list(range(start_index, start_index + length)),
+          "task_index": [TASKS.index(TASKS[episode])] * length}
+
+
+def write_lerobot(root, version):
+  """A LeRobot dataset of 3 episodes, 2 video cameras, 2-dim actions, in layout v2.1 or v3.0."""
+  cameras = ("observation.images.top", "observation.images.wrist")
+  features = {"action": {"dtype": "float32", "shape": [2]},
+              "observation.state": {"dtype": "float32", "shape": [3]},
+              **{c: {"dtype": "video", "shape": [SIZE, SIZE, 3],
+                     "names": ["height", "width", "channels"]} for c in cameras}}
+  os.makedirs(root / "meta")
+  starts = np.cumsum((0,) + LENGTHS)
+  if version == "v2":
+    info = {"codebase_version": "v2.1", "fps": FPS, "chunks_size": 1000,
+            "data_path": "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet",
+            "video_path": "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4"}
+    with open(root / "meta" / "episodes.jsonl", "w") as f:
+      for e, n in enumerate(LENGTHS):
+        f.write(json.dumps({"episode_index": e, "tasks": [TASKS[e]], "length": n}) + "\n")
+    for e, n in enumerate(LENGTHS):
+      path = root / info["data_path"].format(episode_chunk=0, episode_index=e)
+      os.makedirs(path.parent, exist_ok=True)
+      pq.write_table(pa.table(_lerobot_rows(e, n, starts[e])), path)
+      for c, camera in enumerate(cameras):
+        video = root / info["video_path"].format(episode_chunk=0, video_key=camera, episode_index=e)
+        os.makedirs(video.parent, exist_ok=True)
+        write_video(str(video), _lerobot_frames(e, n, c), fps=FPS, scale=1)
+  else:
+    info = {"codebase_version": "v3.0", "fps": FPS,
+            "data_path": "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet",
+            "video_path": "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"}
+    rows = [_lerobot_rows(e, n, starts[e]) for e, n in enumerate(LENGTHS)]
+    path = root / "data" / "chunk-000" / "file-000.parquet"
+    os.makedirs(path.parent)
+    pq.write_table(pa.table({k: sum((r[k] for r in rows), []) for k in rows[0]}), path)
+    episodes = {"episode_index": [], "tasks": [], "length": []}
+    for c, camera in enumerate(cameras):
+      video = root / "videos" / camera / "chunk-000" / "file-000.mp4"
+      os.makedirs(video.parent)
+      write_video(str(video), np.concatenate([_lerobot_frames(e, n, c) for e, n in
+                                              enumerate(LENGTHS)]), fps=FPS, scale=1)
+      episodes[f"videos/{camera}/chunk_index"] = [0] * 3
+      episodes[f"videos/{camera}/file_index"] = [0] * 3
+      episodes[f"videos/{camera}/from_timestamp"] = [float(s) / FPS for s in starts[:3]]
+    for e, n in enumerate(LENGTHS):
+      episodes["episode_index"].append(e)
+      episodes["tasks"].append([TASKS[e]])
+      episodes["length"].append(n)
+    path = root / "meta" / "episodes" / "chunk-000" / "file-000.parquet"
+    os.makedirs(path.parent)
+    pq.write_table(pa.table(episodes), path)
+  info.update(features=features, splits={"train": "0:3"}, total_episodes=3)
+  with open(root / "meta" / "info.json", "w") as f:
+    json.dump(info, f)
+  return cameras
+
+
+@pytest.mark.parametrize("version", ["v2", "v3"])
+def test_lerobot_import(tmp_path, version):
+  src = tmp_path / "src"
+  cameras = write_lerobot(src, version)
+  out = _cli("data", "import", "lerobot", str(src), str(tmp_path / "out"), "--camera",
+             cameras[1]).strip().splitlines()[-1]
+  episodes = ArrayRecordEpisodes(out, "train")  # the built-in `lerobot` spec
+  assert episodes.spec.name == "lerobot" and episodes.spec.action_dim == 2
+  assert episodes.lengths().tolist() == list(LENGTHS)
+  top = ArrayRecordEpisodes(out, "train", oxe.specs_from_config(
+      {"dataset": "lerobot", "image_key": "observation/top"}))
+  for e, n in enumerate(LENGTHS):
+    episode = episodes.episode(e)
+    assert episode.instruction == TASKS[e]
+    np.testing.assert_array_equal(episode.actions, np.asarray(_lerobot_rows(e, n, 0)["action"],
+                                                              np.float32))
+    for camera, source in ((cameras[1], episodes), (cameras[0], top)):
+      if version == "v2":
+        video = read_video(str(src / f"videos/chunk-000/{camera}/episode_{e:06d}.mp4"))
+      else:
+        first = sum(LENGTHS[:e])
+        video = read_video(str(src / f"videos/{camera}/chunk-000/file-000.mp4"))[first:first + n]
+      window = WindowSource(source, n, 1, None)
+      frames = window[[int(i) for i, _ in window.index].index(e)]["frames"]
+      np.testing.assert_array_equal(frames, video)  # PNG keeps the decoded video exactly
+  # and what a training run reads: windows of a config split, with statistics of that split
+  stats = action_stats(out, "train[:2]")
+  assert stats.count == LENGTHS[0] - 1 + LENGTHS[1] - 1
+  with pytest.raises(ValueError, match="already exists"):
+    import_lerobot(str(src), out)
+  with pytest.raises(ValueError, match="no camera 'observation.images.side'"):
+    import_lerobot(str(src), str(tmp_path / "other"), camera="observation.images.side")

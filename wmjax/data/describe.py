@@ -1,0 +1,86 @@
+"""``wmjax data inspect``: a prepared TFDS RLDS dataset's splits and features, and a suggested
+:class:`~wmjax.data.oxe.DatasetSpec` to read it with (a guess to check, printed as config)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from wmjax.data import oxe
+
+
+def _kind(feature) -> str:
+  name = type(feature).__name__
+  shape = tuple(getattr(feature, "shape", ()) or ())
+  dtype = np.dtype(feature.np_dtype).name if hasattr(feature, "np_dtype") else "?"
+  return f"{name}{list(shape)} {dtype}"
+
+
+def _is_image(feature) -> bool:
+  return type(feature).__name__ == "Image"
+
+
+def _is_text(feature) -> bool:
+  return type(feature).__name__ == "Text"
+
+
+def _size(feature) -> int:
+  return int(np.prod(getattr(feature, "shape", ()) or (1,)))
+
+
+def suggest_spec(name: str, features) -> oxe.DatasetSpec:
+  """A spec guessed from a builder's ``info.features``: one camera (``image``, ``image_0`` or
+  ``rgb`` if there is one; :func:`describe` lists the others), a text or UTF-8-code instruction,
+  the ``action`` tensor or the float / bool leaves of an ``action`` dict with the gripper last."""
+  leaves = oxe.feature_leaves(features)
+  steps = {k: f for k, f in leaves.items() if not k.startswith("episode_metadata/")}
+  cameras = [k for k, f in steps.items() if _is_image(f)]
+  if not cameras:
+    raise ValueError(f"{name}: no image feature among the steps' keys {sorted(steps)}")
+  preferred = [k for k in cameras if k.split("/")[-1] in ("image", "image_0", "rgb")]
+  camera = (preferred or cameras)[0]
+  texts = [k for k, f in steps.items() if _is_text(f) and ("instruction" in k or "language" in k)]
+  codes = [k for k, f in steps.items()
+           if "instruction" in k and np.dtype(f.np_dtype).kind in "iu" and _size(f) > 1]
+  instruction, encoding = ((texts[0], "text") if texts else (codes[0], "utf8_codes") if codes
+                           else ("", "auto"))
+  actions = [k for k, f in steps.items() if k == "action" or k.startswith("action/")]
+  usable = [k for k in actions if np.dtype(steps[k].np_dtype).kind in "fb"
+            and "terminate" not in k]
+  if not usable:
+    raise ValueError(f"{name}: no float / bool action feature among {sorted(steps)}")
+  grippers = [k for k in usable if "gripper" in k and _size(steps[k]) == 1]
+  ordered = [k for k in usable if k not in grippers] + grippers[:1]
+  dim = sum(_size(steps[k]) for k in ordered)
+  return oxe.DatasetSpec(name, "suggested", (camera,), instruction_key=instruction,
+                         instruction_encoding=encoding, action_keys=tuple(ordered),
+                         action_dim=dim, gripper_dim=dim - 1 if grippers else None)
+
+
+def describe(builder) -> str:
+  """The text ``wmjax data inspect`` prints for a TFDS builder."""
+  info = builder.info
+  lines = [f"{info.name} {info.version} ({info.file_format.value}) at {builder.data_dir}",
+           "splits: " + ", ".join(f"{s} ({info.splits[s].num_examples} episodes)"
+                                  for s in info.splits), "features (steps/ omitted):"]
+  leaves = oxe.feature_leaves(info.features)
+  width = max(len(k) for k in leaves)
+  lines += [f"  {key:<{width}}  {_kind(feature)}" for key, feature in leaves.items()]
+  spec = suggest_spec(info.name, info.features)
+  cameras = [k for k, f in leaves.items() if _is_image(f)]
+  lines += ["", "suggested spec (check it; config.data.spec of configs/rlds.py, or overrides):"]
+  for key, value in spec.to_dict().items():
+    if key in ("name", "layout"):
+      continue
+    if key == "image_keys" and len(cameras) > 1:
+      lines.append(f"  image_keys = {tuple(value)!r}  # cameras: {', '.join(cameras)}")
+    else:
+      lines.append(f"  {key} = {tuple(value) if isinstance(value, list) else value!r}")
+  instruction = spec.instruction_key or "''"
+  lines += ["", "as overrides of configs/rlds.py:",
+            f"  --config.data.dataset={info.name} "
+            f"--config.data.spec.image_keys=\"{tuple(spec.image_keys)!r}\" "
+            f"--config.data.spec.instruction_key={instruction} "
+            f"--config.data.spec.action_keys=\"{tuple(spec.action_keys)!r}\" "
+            f"--config.data.spec.gripper_dim={spec.gripper_dim} "
+            f"--config.model.action_dim={spec.action_dim}"]
+  return "\n".join(lines)

@@ -1,0 +1,234 @@
+"""LeRobot datasets (``meta/info.json``, ``data/**/*.parquet``, ``videos/**/*.mp4``) -> the
+project's RLDS in ArrayRecord, read with pyarrow and :func:`wmjax.data.videoio.read_video` (no
+torch, no ``lerobot`` package).
+
+Both layouts are read: v2.x (one parquet and one mp4 per camera per episode, episode metadata in
+``meta/episodes.jsonl``) and v3 (several episodes per file, episode metadata in
+``meta/episodes/**/*.parquet`` with each camera's ``from_timestamp`` in its video file). A frame
+row's ``action`` becomes the step's action: LeRobot records the action taken at that frame, which
+leads to the next one, the RLDS alignment. Cameras are ``video`` (or ``image``) features.
+
+The output is a TFDS builder directory named ``lerobot`` (built-in spec ``lerobot``):
+``steps/observation/image`` (PNG) is the chosen camera (default the first), every camera is also
+``steps/observation/<name>`` (``observation.images.wrist`` -> ``wrist``),
+``steps/observation/state`` the ``observation.state`` where present, ``steps/action`` float32
+``[A]``, ``steps/language_instruction`` the episode's task(s), ``is_first`` / ``is_last`` /
+``is_terminal``; splits as ``info.json`` lists them (``"train": "0:50"``).
+"""
+
+from __future__ import annotations
+
+import glob
+import io
+import json
+import os
+import re
+import shutil
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+VERSIONS = ("v2", "v3")
+
+
+def _png(frame: np.ndarray) -> bytes:
+  buffer = io.BytesIO()
+  Image.fromarray(frame).save(buffer, format="PNG")
+  return buffer.getvalue()
+
+
+def camera_name(key: str) -> str:
+  """``observation.images.wrist`` -> ``wrist`` (a valid feature name)."""
+  name = key.removeprefix("observation.images.").removeprefix("observation.")
+  return re.sub(r"\W", "_", name)
+
+
+class LeRobotDataset:
+  """The parts of a local LeRobot dataset the importer needs (see the module doc)."""
+
+  def __init__(self, src: str):
+    self.src = os.fspath(src)
+    path = os.path.join(self.src, "meta", "info.json")
+    if not os.path.isfile(path):
+      raise ValueError(f"{src} is not a LeRobot dataset: no meta/info.json")
+    with open(path) as f:
+      self.info = json.load(f)
+    version = str(self.info.get("codebase_version", ""))
+    self.version = version.split(".")[0]
+    if self.version not in VERSIONS:
+      raise ValueError(f"{src}: LeRobot codebase_version {version!r} is not supported (v2.x or "
+                       f"v3.x)")
+    features = self.info.get("features", {})
+    self.cameras = [k for k, v in features.items() if v.get("dtype") in ("video", "image")]
+    if "action" not in features or not self.cameras:
+      raise ValueError(f"{src}: info.json features need 'action' and at least one camera (dtype "
+                       f"video or image); found {sorted(features)}")
+    self.fps = float(self.info["fps"])
+    self.episodes = self._episodes()
+    self._rows = self._read_rows()
+
+  def _episodes(self) -> dict[int, dict]:
+    """episode index -> its metadata row (``tasks``, ``length``, v3 video offsets)."""
+    import pyarrow.parquet as pq
+    if self.version == "v2":
+      path = os.path.join(self.src, "meta", "episodes.jsonl")
+      with open(path) as f:
+        rows = [json.loads(line) for line in f if line.strip()]
+    else:
+      files = sorted(glob.glob(os.path.join(self.src, "meta", "episodes", "**", "*.parquet"),
+                               recursive=True))
+      if not files:
+        raise ValueError(f"{self.src}: a v3 dataset needs meta/episodes/**/*.parquet")
+      rows = [row for f in files for row in pq.read_table(f).to_pylist()]
+    return {int(row["episode_index"]): row for row in rows}
+
+  def _read_rows(self) -> dict[int, list[dict]]:
+    """episode index -> its frame rows in ``frame_index`` order."""
+    import pyarrow.parquet as pq
+    files = sorted(glob.glob(os.path.join(self.src, "data", "**", "*.parquet"), recursive=True))
+    if not files:
+      raise ValueError(f"{self.src}: no data/**/*.parquet")
+    rows: dict[int, list[dict]] = {}
+    for path in files:
+      for row in pq.read_table(path).to_pylist():
+        rows.setdefault(int(row["episode_index"]), []).append(row)
+    for episode in rows.values():
+      episode.sort(key=lambda r: r["frame_index"])
+    return rows
+
+  def splits(self) -> dict[str, list[int]]:
+    """Split name -> episode indices (``info.json``'s ``"train": "0:50"``; all episodes in
+    ``train`` when it lists none)."""
+    listed = self.info.get("splits") or {"train": f"0:{max(self._rows) + 1}"}
+    out = {}
+    for name, span in listed.items():
+      start, stop = (int(v) for v in str(span).split(":"))
+      out[name] = [e for e in sorted(self._rows) if start <= e < stop]
+    return out
+
+  def _video_path(self, key: str, episode: int) -> tuple[str, int]:
+    """The video file of ``key`` holding ``episode`` and the episode's first frame in it."""
+    template = self.info["video_path"]
+    if self.version == "v2":
+      chunk = episode // int(self.info.get("chunks_size", 1000))
+      path = template.format(episode_chunk=chunk, video_key=key, episode_index=episode)
+      return os.path.join(self.src, path), 0
+    meta = self.episodes[episode]
+    path = template.format(video_key=key, chunk_index=int(meta[f"videos/{key}/chunk_index"]),
+                           file_index=int(meta[f"videos/{key}/file_index"]))
+    return (os.path.join(self.src, path),
+            int(round(float(meta[f"videos/{key}/from_timestamp"]) * self.fps)))
+
+  def camera_frames(self, key: str, episode: int, videos: dict[str, np.ndarray]) -> np.ndarray:
+    """uint8 ``[L, H, W, 3]`` of camera ``key`` in ``episode``; ``videos`` caches decoded files
+    (a v3 file holds several episodes)."""
+    rows = self._rows[episode]
+    if self.info["features"][key]["dtype"] == "image":
+      return np.stack([np.asarray(Image.open(io.BytesIO(r[key]["bytes"])).convert("RGB"))
+                       for r in rows])
+    from wmjax.data.videoio import read_video
+    path, first = self._video_path(key, episode)
+    if path not in videos:
+      if not os.path.isfile(path):
+        raise ValueError(f"{self.src}: episode {episode} has no video {path}")
+      videos.clear()  # files are visited in order; keep one decoded at a time
+      videos[path] = read_video(path)
+    frames = videos[path][first:first + len(rows)]
+    if len(frames) != len(rows):
+      raise ValueError(f"{path}: episode {episode} needs frames [{first}, {first + len(rows)}) "
+                       f"but the video has {len(videos[path])}")
+    return frames
+
+  def instruction(self, episode: int) -> str:
+    tasks = self.episodes.get(episode, {}).get("tasks") or []
+    return "; ".join(str(t) for t in tasks)
+
+  def steps(self, episode: int, camera: str, videos: dict) -> list[dict[str, Any]]:
+    """The RLDS steps of ``episode`` (see the module doc)."""
+    rows = self._rows[episode]
+    cameras = {key: self.camera_frames(key, episode, videos) for key in self.cameras}
+    instruction, last = self.instruction(episode), len(rows) - 1
+    steps = []
+    for t, row in enumerate(rows):
+      observation = {camera_name(key): _png(frames[t]) for key, frames in cameras.items()}
+      observation["image"] = observation[camera_name(camera)]
+      if "observation.state" in row:
+        observation["state"] = np.asarray(row["observation.state"], np.float32).reshape(-1)
+      steps.append({"observation": observation,
+                    "action": np.asarray(row["action"], np.float32).reshape(-1),
+                    "language_instruction": instruction, "is_first": t == 0, "is_last": t == last,
+                    "is_terminal": t == last})
+    return steps
+
+
+def _builder_class(dataset: LeRobotDataset, camera: str):
+  import tensorflow_datasets as tfds
+
+  features = dataset.info["features"]
+
+  def shape(key):
+    return tuple(int(v) for v in features[key]["shape"])
+
+  def image_shape(key):
+    dims = shape(key)  # LeRobot writes [H, W, C] ("names": height, width, channels)
+    names = features[key].get("names") or []
+    if list(names)[:1] == ["channels"]:
+      dims = dims[1:] + dims[:1]
+    return (dims[0], dims[1], 3)
+
+  observation = {camera_name(k): tfds.features.Image(shape=image_shape(k), encoding_format="png")
+                 for k in dataset.cameras}
+  observation["image"] = tfds.features.Image(shape=image_shape(camera), encoding_format="png")
+  if "observation.state" in features:
+    observation["state"] = tfds.features.Tensor(shape=(int(np.prod(shape("observation.state"))),),
+                                                dtype=np.float32)
+  step = {"observation": observation,
+          "action": tfds.features.Tensor(shape=(int(np.prod(shape("action"))),), dtype=np.float32),
+          "language_instruction": tfds.features.Text(),
+          "is_first": np.bool_, "is_last": np.bool_, "is_terminal": np.bool_}
+
+  def _info(self):
+    return tfds.core.DatasetInfo(
+        builder=self, description=f"LeRobot dataset {dataset.src} imported by wmjax",
+        features=tfds.features.FeaturesDict({"steps": tfds.features.Dataset(step),
+                                             "episode_metadata": {"episode_id": np.int64}}),
+        metadata=tfds.core.MetadataDict(source=os.path.abspath(dataset.src), camera=camera,
+                                        fps=dataset.fps))
+
+  def _split_generators(self, dl_manager):
+    return {name: self._generate_examples(episodes)
+            for name, episodes in dataset.splits().items()}
+
+  def _generate_examples(self, episodes):
+    videos: dict[str, np.ndarray] = {}
+    for episode in episodes:
+      yield episode, {"steps": dataset.steps(episode, camera, videos),
+                      "episode_metadata": {"episode_id": episode}}
+
+  return type("LeRobotImport", (tfds.core.GeneratorBasedBuilder,), {
+      "name": "lerobot", "VERSION": tfds.core.Version("1.0.0"), "_info": _info,
+      "_split_generators": _split_generators, "_generate_examples": _generate_examples,
+  }, skip_registration=True)
+
+
+def import_lerobot(src: str, out: str, camera: str | None = None) -> str:
+  """Write the LeRobot dataset ``src`` as an ArrayRecord RLDS builder directory ``out`` (must not
+  exist; written beside it first and renamed when complete); ``camera``: the feature key stored
+  as ``observation/image`` (default the first camera). Returns ``out``."""
+  out = os.fspath(out)
+  if os.path.exists(out):
+    raise ValueError(f"{out} already exists; refusing to overwrite it")
+  dataset = LeRobotDataset(src)
+  camera = camera or dataset.cameras[0]
+  if camera not in dataset.cameras:
+    raise ValueError(f"{src} has no camera {camera!r}; cameras: {dataset.cameras}")
+  tmp = out.rstrip("/") + ".incomplete"
+  shutil.rmtree(tmp, ignore_errors=True)
+  try:
+    builder = _builder_class(dataset, camera)(data_dir=tmp, file_format="array_record")
+    builder.download_and_prepare()
+    os.rename(builder.data_dir, out)
+  finally:
+    shutil.rmtree(tmp, ignore_errors=True)
+  return out
