@@ -239,13 +239,27 @@ def test_gridworld_positions_follow_the_actions(grid):
   episode = episodes.episode(0)
   positions = episode.extras["square_positions"]  # [L, n, 2]
   half = config.square_size / 2
-  moved = np.clip(positions[:-1] + episode.actions[:-1].reshape(-1, config.num_squares, 2), half,
-                  config.image_size - half)
-  np.testing.assert_allclose(positions[1:], moved, atol=1e-5)
+  # positions snap to the pixel grid: the frame shows the whole state
+  moved = np.round(positions[:-1] + episode.actions[:-1].reshape(-1, config.num_squares, 2)
+                   - half) + half
+  np.testing.assert_allclose(positions[1:], np.clip(moved, half, config.image_size - half),
+                             atol=1e-5)
+  assert np.abs(episode.actions).max() > 0.5 and (positions[1:] != positions[:-1]).any()
   window = WindowSource(episodes, 4, 1, None)[0]
   for i, (cy, cx) in enumerate(window["square_positions"][0]):
     if i == config.num_squares - 1:  # the top square is fully visible at its centre
       np.testing.assert_array_equal(window["frames"][0, int(cy), int(cx)], gridworld.COLORS[i])
+
+
+def test_gridworld_without_snapping_keeps_sub_pixel_positions():
+  config = gridworld.GridworldConfig(snap_to_pixels=False, episode_length=8)
+  centres, actions = gridworld.simulate(config, np.random.default_rng(0))
+  half = config.square_size / 2
+  moved = np.clip(centres[:-1] + actions[:-1].reshape(-1, config.num_squares, 2), half,
+                  config.image_size - half)
+  np.testing.assert_allclose(centres[1:], moved, atol=1e-5)
+  assert not np.allclose(centres, np.round(centres - half) + half)
+  assert config.name != gridworld.GridworldConfig(episode_length=8).name
 
 
 def test_prepare_gridworld_command(tmp_path):

@@ -238,3 +238,25 @@ def test_loss_only_on_predicted_frames_in_irasim_regime(regime, expect_zero):
     assert float(loss) < 1e-6
   else:
     assert float(loss) > 0.1
+
+
+def test_regression_process_is_one_deterministic_step():
+  from wmjax.diffusion import Regression, make_process
+  process = make_process("regression")
+  assert isinstance(process, Regression)
+  x0 = jnp.linspace(-1, 1, 2 * 3 * 4).reshape(2, 3, 4)
+  levels, mask = training_levels(process, jax.random.key(0), 2, 3, "irasim", 1)
+  np.testing.assert_array_equal(levels, [[0, 1, 1]] * 2)  # clean context, pure-noise targets
+  np.testing.assert_array_equal(mask, [[0, 1, 1]] * 2)
+  noise = jax.random.normal(jax.random.key(1), x0.shape)
+  shown = process.add_noise(x0, levels, noise)
+  np.testing.assert_array_equal(shown[:, 0], x0[:, 0])
+  np.testing.assert_array_equal(shown[:, 1:], noise[:, 1:])
+  np.testing.assert_array_equal(process.target(x0, None, levels), x0)
+  # the sampler's one step returns the network output as the frames
+  config = SamplerConfig(sampler="euler", num_steps=1, context_level=0.0)
+  out = sample_window(lambda x, lv: x + 0.5, process, config, jnp.zeros((2, 2, 4)),
+                      jax.random.key(2))
+  np.testing.assert_allclose(out, 0.5)
+  with pytest.raises(ValueError, match="num_steps must be 1"):
+    process.sampling_levels(10)

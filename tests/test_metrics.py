@@ -140,3 +140,29 @@ def test_square_positions_are_recovered_from_rendered_frames():
   empty = np.zeros_like(frame)
   error, found = metrics.square_position_error(empty, centres, gridworld.COLORS[:3], 16.0)
   assert not found.any() and (error == 16.0).all()
+
+
+def test_square_iou_on_hand_made_frames():
+  config = gridworld.GridworldConfig(num_squares=2, image_size=16, square_size=4)
+  colors = gridworld.COLORS[:2]
+  truth = gridworld.render(np.array([[4.0, 4.0], [11.0, 11.0]], np.float32), config)
+  iou, one = metrics.square_iou(truth, truth, colors)
+  np.testing.assert_array_equal(iou, [1.0, 1.0])
+  assert one.all()
+  # square 0 shifted by one pixel: 12 of 16 pixels shared, union 20
+  shifted = gridworld.render(np.array([[4.0, 5.0], [11.0, 11.0]], np.float32), config)
+  iou, one = metrics.square_iou(shifted, truth, colors)
+  np.testing.assert_allclose(iou, [12 / 20, 1.0])
+  assert one.all()
+  # square 1 fragmented: its centroid stays, every other pixel of it goes black
+  fragmented = truth.copy()
+  fragmented[9:13, 9:13][np.indices((4, 4)).sum(0) % 2 == 1] = 0
+  iou, one = metrics.square_iou(fragmented, truth, colors)
+  np.testing.assert_allclose(iou, [1.0, 0.5])
+  np.testing.assert_array_equal(one, [True, False])
+  # square 0 missing; a leading batch axis is kept
+  missing = truth.copy()
+  missing[2:6, 2:6] = 0
+  iou, one = metrics.square_iou(np.stack([missing, truth]), np.stack([truth, truth]), colors)
+  np.testing.assert_allclose(iou, [[0.0, 1.0], [1.0, 1.0]])
+  np.testing.assert_array_equal(one, [[False, True], [True, True]])

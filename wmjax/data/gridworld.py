@@ -2,7 +2,11 @@
 
 ``n`` coloured squares on a black frame, each with a random initial position; at every step each
 square gets its own 2-D velocity, uniform in ``[-max_speed, max_speed]`` pixels, which is added to
-its position (clipped so the square stays inside the frame). The action is the concatenation of
+its position (clipped so the square stays inside the frame). With ``snap_to_pixels`` (the default)
+every position is rounded to the pixel grid the frame is drawn on, so a frame shows the whole
+state and the next frame follows from it and the action; without it the state keeps a sub-pixel
+part that no frame shows (the frame rounds it), and the same frame and action can lead to two
+different next frames. The action is the concatenation of
 the ``n`` velocities ``[vy_0, vx_0, vy_1, vx_1, ...]``; square ``i`` always has colour ``i``, so
 every action slot maps to one square. Each step stores the true square centres
 (``observation/square_positions [n, 2]``, (y, x) pixels) so action-following can be scored
@@ -28,7 +32,8 @@ oxe.register(oxe.DatasetSpec("gridworld", "wmjax",
 
 @dataclasses.dataclass(frozen=True)
 class GridworldConfig:
-  """Defaults fit CPU training: 16x16 frames, 2 squares of 4 px, speeds up to 2 px / step."""
+  """Defaults fit CPU training: 16x16 frames, 2 squares of 4 px, speeds up to 2 px / step,
+  positions on the pixel grid."""
 
   num_squares: int = 2
   image_size: int = 16
@@ -38,6 +43,13 @@ class GridworldConfig:
   train_episodes: int = 512
   test_episodes: int = 32
   seed: int = 0
+  snap_to_pixels: bool = True
+
+  @classmethod
+  def from_dict(cls, values) -> "GridworldConfig":
+    """From a config section; one written before ``snap_to_pixels`` existed described sub-pixel
+    positions, so a missing key means False (the dataset its model was trained on)."""
+    return cls(**{"snap_to_pixels": False, **dict(values)})
 
   def __post_init__(self):
     if not 1 <= self.num_squares <= len(COLORS):
@@ -51,19 +63,22 @@ class GridworldConfig:
   @property
   def name(self) -> str:
     return (f"n{self.num_squares}_s{self.image_size}_q{self.square_size}_v{self.max_speed:g}"
-            f"_l{self.episode_length}_e{self.train_episodes}-{self.test_episodes}_seed{self.seed}")
+            f"_l{self.episode_length}_e{self.train_episodes}-{self.test_episodes}_seed{self.seed}"
+            + ("_px" if self.snap_to_pixels else ""))
 
 
 def simulate(config: GridworldConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
   """One episode: square centres ``[L, n, 2]`` and actions ``[L, 2n]`` (last action zero)."""
   n, length, half = config.num_squares, config.episode_length, config.square_size / 2
   low, high = half, config.image_size - half
+  # the centre of a square drawn from whole pixel ``k`` on is ``k + half``
+  snap = (lambda c: np.round(c - half) + half) if config.snap_to_pixels else (lambda c: c)
   centres = np.empty((length, n, 2), np.float32)
-  centres[0] = rng.uniform(low, high, (n, 2))
+  centres[0] = snap(rng.uniform(low, high, (n, 2)))
   velocities = rng.uniform(-config.max_speed, config.max_speed, (length, n, 2)).astype(np.float32)
   velocities[-1] = 0.0
   for t in range(1, length):
-    centres[t] = np.clip(centres[t - 1] + velocities[t - 1], low, high)
+    centres[t] = np.clip(snap(centres[t - 1] + velocities[t - 1]), low, high)
   return centres, velocities.reshape(length, 2 * n)
 
 

@@ -46,6 +46,11 @@ class PushTConfig:
   batch: int = 32
   seed: int = 0
 
+  @classmethod
+  def from_dict(cls, values) -> "PushTConfig":
+    """From a config section."""
+    return cls(**dict(values))
+
   def __post_init__(self):
     object.__setattr__(self, "noise_levels", tuple(float(n) for n in self.noise_levels))
     if self.image_size < 8 or self.episode_length < 2 or not self.noise_levels:

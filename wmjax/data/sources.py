@@ -267,7 +267,7 @@ def dataset_dir(data: ml_collections.ConfigDict) -> str:
   generated if missing with the parameters in ``config.data.<dataset>``."""
   if data.dataset in GENERATED:
     params_class, prepare = GENERATED[data.dataset]
-    params = params_class(**data.get(data.dataset, {}))
+    params = params_class.from_dict(data.get(data.dataset, {}))
     return prepare(os.path.expanduser(data.data_dir), params)
   oxe.specs_from_config(data)  # an unknown dataset without a spec fails here, clearly
   if not data.get("builder_dir"):

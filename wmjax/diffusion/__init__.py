@@ -1,8 +1,8 @@
 """Noise schedules, forward processes and objectives, samplers and scheduling matrices."""
 
 from wmjax.diffusion.objectives import (FlowMatching, GaussianDiffusion, Process, diffusion_loss,
-                                        make_process, masked_loss_sum, training_levels,
-                                        training_noise)
+                                        make_process, masked_loss_sum, Regression,
+                                        training_levels, training_noise)
 from wmjax.diffusion.sampling import (SamplerConfig, classifier_free_guidance, context_inputs,
                                       ddim_step, euler_step, sample_window, sampler_step,
                                       scheduling_matrix, window_denoiser)
@@ -11,6 +11,6 @@ from wmjax.diffusion.schedules import alphas_cumprod, make_betas
 __all__ = [
     "FlowMatching", "GaussianDiffusion", "Process", "SamplerConfig", "alphas_cumprod",
     "classifier_free_guidance", "context_inputs", "ddim_step", "diffusion_loss", "euler_step",
-    "make_betas", "make_process", "masked_loss_sum", "sample_window", "sampler_step",
+    "make_betas", "make_process", "masked_loss_sum", "Regression", "sample_window", "sampler_step",
     "scheduling_matrix", "training_levels", "training_noise", "window_denoiser",
 ]

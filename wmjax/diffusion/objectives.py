@@ -7,6 +7,10 @@ Two processes share one interface so that the samplers and the rollout are writt
   ``x0``; ``v = sqrt(abar) eps - sqrt(1 - abar) x0``.
 * :class:`FlowMatching` — rectified flow (WorldGym): a level is ``t`` in ``[0, 1]``,
   ``x_t = (1 - t) x0 + t eps`` and the network predicts the velocity ``eps - x0``.
+* :class:`Regression` — no diffusion: a deterministic predictor trained by MSE. The frames to
+  predict are shown as pure noise (level 1), as the sampler starts them, and the network
+  outputs them (``x0``) in one step. The same network as the diffusion models, so it tells
+  whether it can place what it must predict.
 
 Videos are ``[B, T, H, W, C]`` and levels ``[B, T]``: one level per frame.
 """
@@ -155,17 +159,71 @@ class FlowMatching:
     return float(value)
 
 
-Process = Union[GaussianDiffusion, FlowMatching]
+@dataclasses.dataclass(frozen=True, eq=False)
+class Regression:
+  """Deterministic prediction by MSE: level 1 shows a frame as pure noise, level 0 clean.
+
+  Train with ``regime='irasim'`` (clean context, noise for the targets, which carries nothing
+  about them); sampling is one step
+  (``sampling.num_steps=1``, ``sampler='euler'``, ``context_level=0``). The network learns the
+  conditional mean of the targets: blur where the future is uncertain, no noise.
+  """
+
+  num_timesteps: int = 1000
+
+  clean_level = 0.0
+  samplers = ("euler",)
+  prediction = "x0"
+
+  def model_time(self, levels):
+    return jnp.asarray(levels, jnp.float32) * self.num_timesteps
+
+  def add_noise(self, x0, levels, noise):
+    t = broadcast_per_frame(jnp.asarray(levels, jnp.float32), x0)
+    return (1.0 - t) * x0 + t * noise
+
+  def target(self, x0, noise, levels):
+    del noise, levels
+    return x0
+
+  def to_x0_eps(self, x_t, levels, out):
+    del x_t, levels
+    return out, jnp.zeros_like(out)
+
+  def eps_from_x0(self, x_t, levels, x0):
+    del x_t, levels
+    return jnp.zeros_like(x0)
+
+  def context_input(self, x0, level):
+    return (1.0 - float(level)) * x0
+
+  def sample_levels(self, rng, shape):
+    del rng
+    return jnp.ones(shape, jnp.float32)
+
+  def sampling_levels(self, num_steps: int) -> np.ndarray:
+    if num_steps != 1:
+      raise ValueError(f"diffusion.kind='regression' predicts in one step: sampling.num_steps "
+                       f"must be 1, got {num_steps}")
+    return np.array([0.0, 1.0], np.float32)
+
+  def level(self, value: float) -> float:
+    return float(value)
+
+
+Process = Union[GaussianDiffusion, FlowMatching, Regression]
 
 
 def make_process(kind: str = "gaussian", schedule: str = "linear", num_timesteps: int = 1000,
                  prediction: str = "eps") -> Process:
-  """``kind='gaussian'`` (with schedule and prediction) or ``kind='flow'``."""
+  """``kind='gaussian'`` (with schedule and prediction), ``'flow'`` or ``'regression'``."""
   if kind == "gaussian":
     return GaussianDiffusion.create(schedule, num_timesteps, prediction)
   if kind == "flow":
     return FlowMatching(num_timesteps)
-  raise ValueError(f"diffusion kind must be 'gaussian' or 'flow', got {kind!r}")
+  if kind == "regression":
+    return Regression(num_timesteps)
+  raise ValueError(f"diffusion kind must be 'gaussian', 'flow' or 'regression', got {kind!r}")
 
 
 def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,

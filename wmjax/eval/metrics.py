@@ -11,7 +11,8 @@ them in [0, 1]. Callers skip the context frames, which are copies of the ground 
 - :func:`grayscale`: BT.601 luma in uint8 exactly as ``cv2.cvtColor(..., COLOR_RGB2GRAY)``;
   IRASim computes PSNR and SSIM on these.
 - :func:`mse` on [0, 1] pixels, :func:`latent_l2` on raw (latent) values, :func:`masked_mse` over
-  user masks (WPE's arm / object MSE), :func:`square_position_error` for the gridworld.
+  user masks (WPE's arm / object MSE), :func:`square_position_error` and :func:`square_iou` for
+  the gridworld.
 - Fréchet distances (FID over frames, FVD over clips) from the features of a feature network:
   :class:`FeatureMoments` accumulates them, :func:`frechet_distance` compares two.
 - :func:`mean_stderr` aggregates.
@@ -27,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
+import scipy.ndimage
 
 
 def to_unit(frames) -> jax.Array:
@@ -169,6 +171,32 @@ def square_position_error(frames, true_centres: np.ndarray, colors: np.ndarray,
   centres, found = color_centroids(frames, colors)
   error = np.linalg.norm(centres - true_centres, axis=-1)
   return np.where(found, error, missing_penalty), found
+
+
+def square_iou(pred, truth, colors: np.ndarray, tolerance: float = 60.0
+               ) -> tuple[np.ndarray, np.ndarray]:
+  """Shape agreement of coloured squares: ``pred`` and ``truth`` ``[..., H, W, 3]``, ``colors
+  [n, 3]`` -> (IoU of each colour's predicted and true pixel masks ``[..., n]``, whether the
+  predicted mask is one 4-connected component ``[..., n]``).
+
+  A colour absent from both frames (a square hidden under a later one) has IoU 1; absent from
+  one of them, 0. A centroid can sit on the true position while the pixels scatter around it;
+  the IoU cannot.
+  """
+  pred_mask = color_masks(pred, colors, tolerance)  # [..., H, W, n]
+  true_mask = color_masks(truth, colors, tolerance)
+  if pred_mask.shape != true_mask.shape:
+    raise ValueError(f"pred and truth must have the same shape, got {np.shape(pred)} and "
+                     f"{np.shape(truth)}")
+  intersection = (pred_mask & true_mask).sum((-3, -2))
+  union = (pred_mask | true_mask).sum((-3, -2))
+  with np.errstate(invalid="ignore", divide="ignore"):
+    iou = np.where(union > 0, intersection / np.maximum(union, 1), 1.0)
+  h, w, n = pred_mask.shape[-3:]
+  masks = np.moveaxis(pred_mask, -1, -3).reshape(-1, h, w)  # [..., n, H, W] flattened
+  components = np.array([scipy.ndimage.label(m)[1] for m in masks]).reshape(pred_mask.shape[:-3]
+                                                                              + (n,))
+  return iou, components == 1
 
 
 # ----------------------------------------------------------------------------- Fréchet distances

@@ -44,7 +44,8 @@ from wmjax.train.data import member_configs
 
 # name -> whether lower is better (for the report)
 METRICS = {"mse": True, "psnr": False, "ssim": False, "gray_psnr": False, "gray_ssim": False,
-           "latent_l2": True, "masked_mse": True, "square_error_px": True}
+           "latent_l2": True, "masked_mse": True, "square_error_px": True, "square_iou": False,
+           "square_one_component": False}
 
 
 @dataclasses.dataclass
@@ -142,6 +143,9 @@ def frame_metrics(pred, truth, extras: dict[str, np.ndarray]) -> dict[str, np.nd
     colors = gridworld.COLORS[:centres.shape[-2]]
     error, _ = metrics.square_position_error(pred, centres, colors, missing_penalty=h / 2)
     result["square_error_px"] = error.mean(-1)
+    iou, one_component = metrics.square_iou(pred, truth, colors)
+    result["square_iou"] = iou.mean(-1)
+    result["square_one_component"] = one_component.mean(-1)
     # object masks: the squares' pixels in the truth or the prediction
     masks = (metrics.color_masks(truth, colors) | metrics.color_masks(pred, colors)).any(-1)
     result["masked_mse"] = metrics.masked_mse(pred, truth, masks)
