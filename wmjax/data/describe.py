@@ -64,7 +64,7 @@ def describe(builder) -> str:
                                   for s in info.splits), "features (steps/ omitted):"]
   leaves = oxe.feature_leaves(info.features)
   width = max(len(k) for k in leaves)
-  lines += [f"  {key:<{width}}  {_kind(feature)}" for key, feature in leaves.items()]
+  lines += [f"  {key:<{width}}  {_kind(feature)}" for key, feature in sorted(leaves.items())]
   spec = suggest_spec(info.name, info.features)
   cameras = [k for k, f in leaves.items() if _is_image(f)]
   lines += ["", "suggested spec (check it; config.data.spec of configs/rlds.py, or overrides):"]

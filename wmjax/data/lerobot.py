@@ -10,7 +10,7 @@ leads to the next one, the RLDS alignment. Cameras are ``video`` (or ``image``) 
 
 The output is a TFDS builder directory named ``lerobot`` (built-in spec ``lerobot``):
 ``steps/observation/image`` (PNG) is the chosen camera (default the first), every camera is also
-``steps/observation/<name>`` (``observation.images.wrist`` -> ``wrist``),
+``steps/observation/<name>`` (``observation.images.wrist`` -> ``wrist``, see :func:`camera_name`),
 ``steps/observation/state`` the ``observation.state`` where present, ``steps/action`` float32
 ``[A]``, ``steps/language_instruction`` the episode's task(s), ``is_first`` / ``is_last`` /
 ``is_terminal``; splits as ``info.json`` lists them (``"train": "0:50"``).
@@ -39,9 +39,10 @@ def _png(frame: np.ndarray) -> bytes:
 
 
 def camera_name(key: str) -> str:
-  """``observation.images.wrist`` -> ``wrist`` (a valid feature name)."""
-  name = key.removeprefix("observation.images.").removeprefix("observation.")
-  return re.sub(r"\W", "_", name)
+  """``observation.images.wrist`` -> ``wrist`` (a valid feature name; ``observation.image`` ->
+  ``image_camera``, as ``image`` is the chosen camera)."""
+  name = re.sub(r"\W", "_", key.removeprefix("observation.images.").removeprefix("observation."))
+  return "image_camera" if name == "image" else name
 
 
 class LeRobotDataset:
