@@ -4,8 +4,10 @@
 # 32x32x16 SD3 latents, 9 context + 9 new frames), in bf16 with cuDNN attention on a GPU
 # (`attention_impl=auto`: splash on TPU).
 #
-#   benchmarks/gpu_suite.sh train    # train step at batch 16: time, MFU, compiled and peak memory,
-#                                    # device time by op (a jax.profiler trace of 3 steps)
+#   benchmarks/gpu_suite.sh check    # the train settings compiled for an H100 (no GPU needed)
+#   benchmarks/gpu_suite.sh train    # check, then the train step at batch 16: time, MFU,
+#                                    # compiled and peak memory, device time by op (a
+#                                    # jax.profiler trace of 3 steps)
 #   benchmarks/gpu_suite.sh rollout  # batch-8 rollouts: frames/s at 59 calls per block (PNDM-50's
 #                                    # cost) and at DDIM-10; WPE with and without the KV cache
 #   benchmarks/gpu_suite.sh all
@@ -23,7 +25,19 @@ export XLA_PYTHON_CLIENT_MEM_FRACTION=${XLA_PYTHON_CLIENT_MEM_FRACTION:-0.95}
 platform=$(python -c "import jax; print(jax.default_backend())")
 fast=(--set "model.dtype='bfloat16'" --set "model.attention_impl='auto'")
 
+check() {
+  # The suite's train settings compiled for the card first (deviceless, on the host's CPU; about a
+  # minute each): `wmjax compile` exits 1, with the setting train.auto_fit would choose, when one
+  # does not fit what JAX may take (XLA_PYTHON_CLIENT_MEM_FRACTION of the card).
+  for spec in irasim.py:XL wpe_600m.py; do
+    wmjax compile --config "configs/$spec" --target "${COMPILE_TARGET:-h100}" --batch 16 \
+        --config.model.dtype=bfloat16 --config.model.attention_impl=auto \
+        --config.model.remat=dots --out "$out/compile-${spec%%.py*}-b16-dots.json" > /dev/null
+  done
+}
+
 train() {
+  check
   # IRASim-XL/2 trains on 16-frame windows, WPE-600M on 20-frame ones (WPE table 5: batch 16).
   python benchmarks/train_step.py --config configs/irasim.py:XL "${fast[@]}" \
       --set "model.remat='dots'" --batch 16 --steps 5 --profile "$traces/train-irasim" \
@@ -50,8 +64,9 @@ rollout() {
 }
 
 case "${1:-all}" in
+  check) check ;;
   train) train ;;
   rollout) rollout ;;
   all) train; rollout ;;
-  *) echo "usage: $0 [train|rollout|all]" >&2; exit 2 ;;
+  *) echo "usage: $0 [check|train|rollout|all]" >&2; exit 2 ;;
 esac

@@ -40,7 +40,9 @@ def get_config() -> ml_collections.ConfigDict:
                               total_steps=1800, b2=0.99, grad_clip=1.0, ema_decay=0.999)
   config.train = ml_collections.ConfigDict(dict(
       num_steps=1800, log_every=50, checkpoint_every=600, eval_every=600, eval_windows=32,
-      max_checkpoints=3))
+      max_checkpoints=3,
+      # fit before the first step: compiled memory against the device's limit (or the budget)
+      auto_fit=True, memory_budget_gib=None))
   config.mesh = (-1, 1, 1)  # (data, fsdp, tensor)
   config.batch_size = 8  # global
   config.seed = 0

@@ -77,4 +77,6 @@ def add_recipe(config: ml_collections.ConfigDict, dataset: str) -> None:
       train_split=train_split, eval_split=eval_split))
   config.train = ml_collections.ConfigDict(dict(
       num_steps=300_000, log_every=100, checkpoint_every=5_000, eval_every=5_000,
-      eval_windows=16, max_checkpoints=3))
+      eval_windows=16, max_checkpoints=3,
+      # fit before the first step: compiled memory against the device's limit (or the budget)
+      auto_fit=True, memory_budget_gib=None))

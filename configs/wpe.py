@@ -46,5 +46,7 @@ def get_config() -> ml_collections.ConfigDict:
       for name, location, held_out in MIXTURE})
   config.train = ml_collections.ConfigDict(dict(
       num_steps=300_000, log_every=100, checkpoint_every=5_000, eval_every=5_000,
-      eval_windows=16, max_checkpoints=3))
+      eval_windows=16, max_checkpoints=3,
+      # fit before the first step: compiled memory against the device's limit (or the budget)
+      auto_fit=True, memory_budget_gib=None))
   return config

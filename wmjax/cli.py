@@ -7,6 +7,7 @@
   wmjax plan --workdir DIR [--candidates 1,5,10,50] [--proposal push:0.2]
   wmjax launch --num_processes 2 -- train --config configs/gridworld.py --workdir DIR
   wmjax info --config configs/irasim.py:XL [--config.key=value ...]
+  wmjax compile --config configs/irasim.py:XL --target h100|v5p:2x2x1|cpu:N [--batch B] [--out F]
   wmjax data prepare gridworld|pusht --data_dir DIR [--num_squares N ...]
   wmjax data convert SRC_BUILDER_DIR DST_DIR
   wmjax data encode --config FILE --out DIR [--splits train,test]
@@ -15,7 +16,8 @@
   wmjax data import lerobot SRC OUT [--camera KEY]
 
 Config overrides use ``--config.dotted.key=value`` with Python literal values (train, evaluate,
-rollout, eval-policy, plan, info, data encode); an unknown key or flag is an error.
+rollout, eval-policy, plan, info, compile, data encode); an unknown key or flag is an error.
+info, compile and the data commands but encode run JAX on the CPU only.
 """
 
 from __future__ import annotations
@@ -55,11 +57,22 @@ def _config_from_args(args, extra: list[str]):
   return load_config(args.config, _overrides(extra))
 
 
-def _register(parser: argparse.ArgumentParser, func, overrides: bool = False) -> None:
-  """``parser`` runs ``func``; only commands with ``overrides`` take --config.KEY=VALUE."""
-  parser.set_defaults(func=func, takes_overrides=overrides, command_parser=parser)
+def _register(parser: argparse.ArgumentParser, func, overrides: bool = False,
+              host_only: bool = False) -> None:
+  """``parser`` runs ``func``; only commands with ``overrides`` take --config.KEY=VALUE;
+  ``host_only`` commands do no accelerator work and run JAX on the CPU alone."""
+  parser.set_defaults(func=func, takes_overrides=overrides, command_parser=parser,
+                      host_only=host_only)
   if overrides and not parser.epilog:
     parser.epilog = OVERRIDES_HELP
+
+
+def _host_only() -> None:
+  """Keep JAX off accelerators (``JAX_PLATFORMS=cpu``) before any backend starts: a command that
+  does CPU work must not take a GPU's memory from a training job beside it."""
+  import os
+  os.environ["JAX_PLATFORMS"] = "cpu"
+  jax.config.update("jax_platforms", "cpu")
 
 
 def _maybe_initialize_distributed(args) -> None:
@@ -264,6 +277,48 @@ def cmd_info(args, extra) -> int:
   return 0
 
 
+def cmd_compile(args, extra) -> int:
+  """Compile the exact sharded train step (or one jitted rollout block) of a config for a target,
+  without its hardware, and print per-device memory from XLA (arguments, outputs, temporaries,
+  total), the device's memory and whether it fits, the mesh, XLA's and the analytic FLOPs and the
+  compile time. When a train step does not fit, also the setting train.auto_fit would choose
+  (remat none -> dots -> full, then gradient-accumulation micro-batches). Targets: h100[:N],
+  h200[:N], a100[:N] (needs JAX's CUDA plugin, no GPU), TPU topologies such as v5p:2x2x1,
+  v5p:4x4x4, v5e:4x4, v6e:2x2 (needs libtpu, no TPU) and cpu:N. GPU memory counts
+  XLA_PYTHON_CLIENT_MEM_FRACTION (default 0.75) of the card. Exits 1 when the config's own
+  setting does not fit."""
+  from wmjax.train import fit
+  name, _, count = args.target.partition(":")
+  if name == "cpu" and count.isdigit():
+    jax.config.update("jax_num_cpu_devices", int(count))
+  config = _config_from_args(args, extra)
+  try:
+    target = fit.parse_target(args.target)
+  except ValueError as e:
+    raise SystemExit(f"wmjax compile: {e}") from e
+  budget = None if args.budget_gib is None else int(args.budget_gib * fit.GIB)
+  if args.what == "rollout":
+    report = fit.compile_rollout(config, target, args.batch, budget)
+  else:
+    first = fit.compile_step(config, target, args.batch, budget)
+    report = first[2]
+    if report["fits"] is False:
+      _, _, chosen = fit.fit_step(config, target, budget, args.batch, first=first,
+                                  log=lambda line: print(line, flush=True))
+      report["auto_fit"] = {"remat": chosen["remat"], "grad_accum": chosen["grad_accum"],
+                            "total_gib": chosen["total_gib"], "tried": chosen["tried"]}
+  print(fit.describe(report))
+  if "auto_fit" in report:
+    choice = report["auto_fit"]
+    print(f"auto_fit would choose model.remat={choice['remat']!r} "
+          f"optim.grad_accum={choice['grad_accum']} ({choice['total_gib']:.3g} GiB per device)")
+  print(json.dumps(report, indent=2))
+  if args.out:
+    with open(args.out, "w") as f:
+      json.dump(report, f, indent=2)
+  return 1 if report["fits"] is False else 0
+
+
 def cmd_data_prepare(args, extra) -> int:
   """Generate a dataset (gridworld, or Push-T from the gym-pusht simulator) as an RLDS TFDS
   dataset in ArrayRecord, once per parameter set; prints the builder directory."""
@@ -371,13 +426,13 @@ def _add_data_commands(sub) -> None:
       shown = ",".join(map(str, field.default)) if isinstance(field.default, tuple) else field.default
       dataset.add_argument(f"--{field.name}", type=parse, default=field.default,
                            help=f"{name} {field.name} (default {shown})")
-    _register(dataset, cmd_data_prepare)
+    _register(dataset, cmd_data_prepare, host_only=True)
 
   convert = data_sub.add_parser("convert", help="TFRecord RLDS -> ArrayRecord (no beam)",
                                 description=cmd_data_convert.__doc__)
   convert.add_argument("src", help="builder directory, e.g. gs://gresearch/robotics/bridge/0.1.0")
   convert.add_argument("dst", help="output builder directory (must not exist)")
-  _register(convert, cmd_data_convert)
+  _register(convert, cmd_data_convert, host_only=True)
 
   encode = data_sub.add_parser("encode", help="pre-encode a dataset with the config's codec",
                                description=cmd_data_encode.__doc__)
@@ -395,12 +450,12 @@ def _add_data_commands(sub) -> None:
   stats.add_argument("--split", default="train")
   stats.add_argument("--name", default=None, help="dataset spec name (default: the builder's)")
   stats.add_argument("--recompute", action="store_true")
-  _register(stats, cmd_data_stats)
+  _register(stats, cmd_data_stats, host_only=True)
 
   inspect = data_sub.add_parser("inspect", help="features of a TFDS dataset and a suggested spec",
                                 description=cmd_data_inspect.__doc__)
   inspect.add_argument("builder_dir")
-  _register(inspect, cmd_data_inspect)
+  _register(inspect, cmd_data_inspect, host_only=True)
 
   import_ = data_sub.add_parser("import", help="bring another format in as RLDS (ArrayRecord)",
                                 description=cmd_data_import.__doc__)
@@ -413,7 +468,7 @@ def _add_data_commands(sub) -> None:
                        help="camera feature stored as observation/image, e.g. "
                             "observation.images.top (default: the first); every camera is also "
                             "kept as observation/<name>")
-  _register(lerobot, cmd_data_import)
+  _register(lerobot, cmd_data_import, host_only=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -550,7 +605,23 @@ def main(argv: list[str] | None = None) -> int:
   info.add_argument("--config", required=True, help="config file, optionally file.py:arg")
   info.add_argument("--devices", type=int, default=None,
                     help="devices to estimate training memory for (default: this machine's)")
-  _register(info, cmd_info, overrides=True)
+  _register(info, cmd_info, overrides=True, host_only=True)
+
+  compile_ = sub.add_parser("compile", help="compile a train step or rollout for a device target "
+                                            "(no hardware needed): memory, fits, FLOPs",
+                            description=cmd_compile.__doc__)
+  compile_.add_argument("--config", required=True, help="config file, optionally file.py:arg")
+  compile_.add_argument("--target", required=True,
+                        help="h100[:N] | h200[:N] | a100[:N] | TPU topology (v5p:2x2x1, v5e:4x4, "
+                             "...) | cpu:N")
+  compile_.add_argument("--what", choices=["train", "rollout"], default="train",
+                        help="the train step (default) or one rollout block")
+  compile_.add_argument("--batch", type=int, default=None,
+                        help="global batch (default: the config's batch_size; rollout: 8)")
+  compile_.add_argument("--budget_gib", type=float, default=None,
+                        help="memory per device to fit (default: the target's usable memory)")
+  compile_.add_argument("--out", default=None, help="also write the report as JSON here")
+  _register(compile_, cmd_compile, overrides=True, host_only=True)
   _add_data_commands(sub)
   args, extra = parser.parse_known_args(argv)
   if args.func is not cmd_launch:  # launch passes the rest on to its command
@@ -559,6 +630,8 @@ def main(argv: list[str] | None = None) -> int:
       args.command_parser.error(
           f"unrecognized arguments: {' '.join(bad)}"
           + ("; config overrides look like --config.KEY=VALUE" if args.takes_overrides else ""))
+  if args.host_only:
+    _host_only()
   from wmjax.config import ConfigError
   from wmjax.train.errors import RunError
   try:

@@ -62,6 +62,13 @@ LOGICAL_RULES = (
     ("freq", None),
     ("action", None),
     ("patch", None),
+    # activations [B, T, P, D] at block boundaries (wmjax.nn.layers.ACTIVATION_AXES): the batch
+    # is split over the data-parallel axes, the rest kept whole, so that FSDP's sharded weights
+    # never lay activations out along the width
+    ("act_batch", ("data", "fsdp")),
+    ("act_frames", None),
+    ("act_patches", None),
+    ("act_embed", None),
 )
 
 

@@ -24,6 +24,8 @@ Backends (``model.attention_impl``):
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import math
 
@@ -40,6 +42,25 @@ SPLASH_BLOCK = 128  # token block of the splash kernel (the TPU lane width)
 FLASH_MIN_KEYS = 64  # shorter attention goes through XLA under the cudnn backend
 
 
+_PLATFORM = contextvars.ContextVar("wmjax_attention_platform", default=None)
+
+
+@contextlib.contextmanager
+def platform_override(platform: str):
+  """Resolve backends for ``platform`` ('gpu', 'tpu', 'cpu') instead of JAX's default backend:
+  for compiling a model for devices this process does not run on (``wmjax compile``)."""
+  token = _PLATFORM.set(platform)
+  try:
+    yield
+  finally:
+    _PLATFORM.reset(token)
+
+
+def current_platform() -> str:
+  """The platform attention is built for: the override, else JAX's default backend."""
+  return _PLATFORM.get() or jax.default_backend()
+
+
 def check_backend(name: str | None, dtype) -> None:
   """ValueError for a backend that does not exist or cannot take ``dtype`` (the compute dtype)."""
   if name is not None and name not in ATTENTION_BACKENDS:
@@ -52,7 +73,7 @@ def check_backend(name: str | None, dtype) -> None:
 def resolve_backend(name: str | None, dtype, platform: str | None = None) -> str:
   """The backend that runs: ``auto`` and None resolved for ``platform`` (default: JAX's)."""
   check_backend(name, dtype)
-  platform = platform or jax.default_backend()
+  platform = platform or current_platform()
   if name is None:
     return "xla"
   if name == "auto":
@@ -168,7 +189,7 @@ def _splash_local(q, k, v, causal):
   segments = kernel.SegmentIds(q=jnp.asarray(np.arange(lq + pad_q) >= lq, jnp.int32),
                                kv=jnp.asarray(np.arange(lk + pad_k) >= lk, jnp.int32))
   run = _splash_kernel(h, lq + pad_q, lk + pad_k, lk - lq if causal else None,
-                       jax.default_backend() != "tpu")
+                       current_platform() != "tpu")
   heads_first = lambda a: a.transpose(0, 2, 1, 3)  # the kernel's layout [H, L, d]
   out = jax.vmap(run, in_axes=(0, 0, 0, None))(heads_first(q), heads_first(k), heads_first(v),
                                                segments)

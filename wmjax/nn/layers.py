@@ -12,7 +12,10 @@ Every parameter carries logical axis names (``nn.with_logical_partitioning``) so
   patch       patch pixels (p * p * channels)
   layers      stacked layers when the blocks are scanned
 
-Activations are ``[B, T, P, D]``: batch, frames, patches of one frame, width.
+Activations are ``[B, T, P, D]``: batch, frames, patches of one frame, width. They are
+constrained at block boundaries to the logical axes :data:`ACTIVATION_AXES` (``act_batch``,
+``act_frames``, ``act_patches``, ``act_embed``), which ``wmjax.parallel.LOGICAL_RULES`` maps onto
+the trainer's mesh; off that mesh (inference) the constraint does nothing.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmjax.nn.attention import attend
+from wmjax.parallel import LOGICAL_RULES, MESH_AXES
 
 Dtype = Any
 
@@ -36,6 +40,18 @@ _zeros = nn.initializers.zeros
 def logical(init: Callable, *names: str | None) -> Callable:
   """An initializer whose parameter is annotated with logical axis names."""
   return nn.with_logical_partitioning(init, names)
+
+
+ACTIVATION_AXES = ("act_batch", "act_frames", "act_patches", "act_embed")
+
+
+def constrain(x: jax.Array) -> jax.Array:
+  """``x [B, T, P, D]`` laid out by :data:`ACTIVATION_AXES` under :data:`LOGICAL_RULES` when
+  traced on a ``(data, fsdp, tensor)`` mesh (the trainer's); unchanged otherwise."""
+  mesh = jax.sharding.get_abstract_mesh()
+  if mesh.empty or not set(MESH_AXES) <= set(mesh.axis_names):
+    return x
+  return nn.with_logical_constraint(x, ACTIVATION_AXES, rules=LOGICAL_RULES)
 
 
 # --------------------------------------------------------------------------- positions
@@ -272,6 +288,7 @@ class STBlock(nn.Module):
 
   @nn.compact
   def __call__(self, x: jax.Array, cond: jax.Array, cache=None):
+    x = constrain(x)
     b, t, p, d = x.shape
     shift_a, scale_a, gate_a, shift_m, scale_m, gate_m = (
         m[:, :, None, :] for m in Modulation(6, dtype=self.dtype, name="modulation")(cond))
@@ -290,7 +307,7 @@ class STBlock(nn.Module):
     x = x + gate_a * h
     h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, name="mlp")(modulate(layer_norm(x), shift_m,
                                                                            scale_m))
-    return x + gate_m * h, kv
+    return constrain(x + gate_m * h), kv
 
 
 class STLayer(nn.Module):

@@ -47,7 +47,7 @@ from wmjax.diffusion import diffusion_loss
 from wmjax.eval.protocols import frame_metrics
 from wmjax.eval.video import comparison, stack_rows, write_video
 from wmjax.rollout import WorldModel, rollout
-from wmjax.train import memory
+from wmjax.train import fit, memory
 from wmjax.train.checkpoint import CheckpointError, Checkpointer, shapes_by_path
 from wmjax.train.errors import RunError
 from wmjax.train.data import build_data, eval_windows
@@ -263,13 +263,16 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
   if config.batch_size % shards or config.batch_size % jax.process_count():
     raise ValueError(f"global batch_size {config.batch_size} is not divisible by the data-parallel "
                      f"size {shards} and the {jax.process_count()} processes")
-  if is_chief:
-    print(memory.describe(memory.estimate(config, jax.device_count())), flush=True)
   world_model = WorldModel.from_config(config)
   frame_shape, frames = tuple(config.frame_shape), config.data.frames
   parallel.check_shardable(
       jax.eval_shape(lambda: world_model.init(jax.random.key(0), frame_shape, frames)), mesh)
-  trainer = ShardedTrainer(world_model, config, mesh, frame_shape, frames)
+  # the step is compiled, checked against the device's memory (and refitted) before any state
+  # exists; the analytic estimate is only a hint beside XLA's figure
+  say = functools.partial(print, flush=True) if is_chief else lambda *_: None
+  say(f"hint: analytic {memory.describe(memory.estimate(config, jax.device_count()))}")
+  config, trainer, _ = fit.fit_for_training(config, log=say)
+  world_model = trainer.world_model
   config_dict, stats_dict = json.loads(config.to_json()), data.stats_dict()
   num_steps, train_cfg = config.train.num_steps, config.train
   # RGB batches -> latents on the device (unless they were pre-encoded)

@@ -132,7 +132,8 @@ class ShardedTrainer:
                          out_shardings=(self.state_shardings, replicated), donate_argnums=0)
     self._compiled: dict[tuple, jax.stages.Compiled] = {}
 
-  # Both run with the mesh in context, for kernels that are split over it by hand (splash).
+  # All run with the mesh in context: kernels split over it by hand (splash) and the activation
+  # constraints (wmjax.nn.layers.constrain) read it.
 
   def init(self, rng: jax.Array) -> TrainState:
     with jax.set_mesh(self.mesh):

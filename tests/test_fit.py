@@ -1,0 +1,132 @@
+"""Fits before it runs: compiled memory for a device target, the auto-fit ladder, activation
+sharding under FSDP, and commands that keep JAX off accelerators."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from conftest import ROOT, tiny_config
+from wmjax.config import load_config
+from wmjax.train import fit
+
+# A small gridworld model: 8x8 RGB frames, 4-frame windows, global batch 16 on 8 devices.
+SMALL = ("model.in_channels=3", "model.action_dim=4", "model.hidden_size=32", "model.num_heads=2",
+         "model.num_frames=4", "data.frames=4", "frame_shape=(8, 8, 3)", "batch_size=16",
+         "model.remat='full'")
+
+
+def _batch(seed=0, batch=16):
+  k1, k2 = jax.random.split(jax.random.key(seed))
+  return (jax.random.uniform(k1, (batch, 4, 8, 8, 3), minval=-1, maxval=1),
+          jax.random.normal(k2, (batch, 3, 4)))
+
+
+def test_auto_fit_takes_micro_batches_under_a_budget_and_keeps_the_loss():
+  """Under a memory budget below the plain step's compiled size, the trainer's fit climbs to
+  gradient accumulation, says so, and its first step has the plain step's loss."""
+  config = tiny_config("gridworld.py", *SMALL)
+  plain_trainer, _, plain = fit.compile_step(config, fit.parse_target("local"))
+  assert plain["fits"] is None and plain["grad_accum"] == 1  # CPU: no limit without a budget
+  budget = 0.9 * plain["total_gib"]
+  tight = tiny_config("gridworld.py", *SMALL, f"train.memory_budget_gib={budget}")
+  lines = []
+  fitted, trainer, report = fit.fit_for_training(tight, log=lines.append)
+  assert report["grad_accum"] > 1 and fitted.optim.grad_accum == report["grad_accum"]
+  assert report["fits"] and report["total_gib"] <= budget < plain["total_gib"]
+  assert [t["grad_accum"] for t in report["tried"]][0] == 1
+  assert any("auto_fit chose" in line and f"grad_accum={report['grad_accum']}" in line
+             for line in lines)
+  losses = []
+  for t in (plain_trainer, trainer):
+    _, metrics = t.step(t.init(jax.random.key(0)), *_batch())
+    losses.append(float(metrics["loss"]))
+  np.testing.assert_allclose(losses[1], losses[0], rtol=1e-5)
+
+  refused = tiny_config("gridworld.py", *SMALL, f"train.memory_budget_gib={budget}",
+                        "train.auto_fit=False")
+  with pytest.raises(fit.DoesNotFitError, match=r"does not fit.*train.auto_fit=True"):
+    fit.fit_for_training(refused, log=lambda line: None)
+  with pytest.raises(fit.DoesNotFitError, match=r"smallest tried, remat=full grad_accum=\d+"):
+    fit.fit_step(config, fit.parse_target("cpu:2"), budget_bytes=1024, batch=2)
+
+
+def test_targets_parse_and_refuse_clearly():
+  assert len(fit.parse_target("cpu:2").devices) == 2
+  with pytest.raises(ValueError, match="unknown compile target 'k80'"):
+    fit.parse_target("k80")
+  with pytest.raises(ValueError, match="positive integer"):
+    fit.parse_target("h100:0")
+  with pytest.raises(ValueError, match="needs 64 CPU devices"):
+    fit.parse_target("cpu:64")
+  config = tiny_config("gridworld.py", *SMALL)
+  assert fit.fit_ladder(config, 16, 8) == [("full", 1), ("full", 2)]
+  assert fit.fit_ladder(fit.with_setting(config, "none", 1), 8, 2)[:3] == [
+      ("none", 1), ("dots", 1), ("full", 1)]
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="libtpu (the [test] extra) is Linux-only")
+def test_train_step_compiles_for_a_tpu_pod_slice_without_one():
+  """A v5p:2x2x1 topology (4 chips, from libtpu on this CPU machine): the sharded step compiles
+  for the TPU, attention resolves to the TPU's splash kernel, and the memory is the TPU's."""
+  config = tiny_config("gridworld.py", *SMALL, "model.attention_impl='auto'", "mesh=(1, -1, 1)")
+  target = fit.parse_target("v5p:2x2x1")
+  assert target.platform == "tpu" and len(target.devices) == 4
+  report = fit.compile_train(config, target)
+  assert report["mesh"] == {"data": 1, "fsdp": 4, "tensor": 1}
+  assert report["attention"] == "splash"
+  assert report["device_memory_gib"] == 95 and report["fits"]
+  assert 0 < report["arguments_gib"] < report["total_gib"]
+  assert report["xla_flops_per_device"] > 0
+
+
+def test_fsdp_activation_memory_stays_with_the_data_parallel_step():
+  """With activations constrained to the batch axes, FSDP over 4 devices needs no more temporary
+  memory than data parallelism over 4 (same per-device batch) plus one layer's gathered weights.
+  (Without the constraints this step's FSDP temp memory was 2.9x the data-parallel one.)"""
+  d = 128
+  overrides = ("model.depth=2", f"model.hidden_size={d}", "model.num_heads=4",
+               "model.num_frames=8", "model.remat='dots'")
+  target = fit.parse_target("cpu:4")
+  temps = {}
+  for name, mesh in (("dp", "(4, 1, 1)"), ("fsdp", "(1, 4, 1)")):
+    config = load_config(str(ROOT / "configs" / "irasim.py:S"), overrides + (f"mesh={mesh}",))
+    temps[name] = fit.compile_train(config, target, batch=8)["temp_gib"]
+  layer_weights = 2 * 18 * d * d * 4 / fit.GIB  # spatial + temporal block (attention 4D^2, MLP
+  assert temps["fsdp"] <= temps["dp"] + layer_weights, temps  # 8D^2, adaLN 6D^2), float32
+
+
+def _run_host_only(command: list[str]) -> dict:
+  """Run ``wmjax COMMAND`` in a fresh process whose environment asks for a CUDA backend; return
+  the JAX backends it initialised."""
+  script = ("import json, sys; from jax._src import xla_bridge; from wmjax.cli import main; "
+            "code = main(sys.argv[1:]); "
+            "print('BACKENDS=' + json.dumps(sorted(xla_bridge._backends))); sys.exit(code)")
+  env = dict(os.environ, JAX_PLATFORMS="cuda",
+             PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+  env.pop("XLA_FLAGS", None)
+  done = subprocess.run([sys.executable, "-c", script] + command, cwd=ROOT, env=env,
+                        capture_output=True, text=True, timeout=600)
+  assert done.returncode == 0, done.stderr[-2000:]
+  line = [l for l in done.stdout.splitlines() if l.startswith("BACKENDS=")][-1]
+  return {"backends": json.loads(line.removeprefix("BACKENDS=")), "stdout": done.stdout}
+
+
+def test_host_commands_never_start_an_accelerator_backend(tmp_path):
+  """info and compile run on the CPU even where JAX_PLATFORMS asks for a GPU (a GPU backend would
+  fail here, or take 75 % of the card where there is one); compile --target cpu:2 gets its two
+  host devices and writes its JSON."""
+  small = [f"--config.{o}" for o in SMALL]
+  info = _run_host_only(["info", "--config", "configs/gridworld.py"])
+  assert info["backends"] == ["cpu"]
+  out = tmp_path / "report.json"
+  compiled = _run_host_only(["compile", "--config", "configs/gridworld.py", "--target", "cpu:2",
+                             "--budget_gib", "1", "--out", str(out)] + small)
+  assert compiled["backends"] == ["cpu"]
+  report = json.loads(out.read_text())
+  assert report["devices"] == 2 and report["mesh"]["data"] == 2 and report["fits"]
+  assert "train on cpu:2 (batch 16, remat=full grad_accum=1)" in compiled["stdout"]
