@@ -205,6 +205,7 @@ def _cached_output(model, params, x, t, a, c, mask=None, drop=None):
     ("video", dict(scan_layers=False), 2),
     ("per_frame", dict(temporal_pos="rope", scan_layers=False), 1),
     ("per_frame", {}, 3),
+    ("per_frame", dict(temporal_first=True), 2),
 ])
 def test_extend_after_the_cached_context_equals_the_whole_window(cond, fields, c):
   model, params, (x, t, a) = _model(cond, **fields)
@@ -259,3 +260,11 @@ def test_sampling_flops_count_a_cached_context_once(capsys):
     reports.append(json.loads(capsys.readouterr().out))
   assert reports[0]["kv_cache"] and not reports[1]["kv_cache"]
   assert reports[0]["gflop_per_generated_frame"] < 0.6 * reports[1]["gflop_per_generated_frame"]
+
+
+def test_temporal_first_changes_the_block_order_not_the_parameters():
+  model, params, (x, t, a) = _model("per_frame")
+  reordered = model.clone(temporal_first=True)
+  assert (jax.tree.map(jnp.shape, reordered.init(jax.random.key(0), x, t, a))
+          == jax.tree.map(jnp.shape, params))
+  assert float(jnp.abs(reordered.apply(params, x, t, a) - model.apply(params, x, t, a)).max()) > 1e-4

@@ -64,6 +64,7 @@ class LayerStack(nn.Module):
   dtype: jnp.dtype
   scan: bool
   remat: str
+  temporal_first: bool = False
 
   @nn.compact
   def __call__(self, x, spatial_cond, temporal_cond, cache=None, return_kv: bool = False):
@@ -73,7 +74,7 @@ class LayerStack(nn.Module):
                            policy=REMAT_POLICIES[self.remat])
     kwargs = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio, causal=self.causal,
                   rope=self.rope, attention_impl=self.attention_impl, dtype=self.dtype,
-                  return_kv=return_kv)
+                  return_kv=return_kv, temporal_first=self.temporal_first)
     inputs = (x, spatial_cond, temporal_cond) + (() if cache is None else (cache,))
     if self.scan:
       in_axes = (nn.broadcast, nn.broadcast) + (() if cache is None else (0,))
@@ -105,6 +106,7 @@ class STDiT(nn.Module):
   trajectory_in_temporal: bool = False
   action_dropout: float = 0.1
   causal_temporal: bool = False
+  temporal_first: bool = False  # each layer: temporal block, then spatial (default spatial first)
   temporal_pos: str = "sincos"
   attention_impl: str | None = "xla"  # a backend of wmjax.nn.attention (None: xla)
   dtype: str = "float32"  # compute dtype; parameters are always float32
@@ -135,7 +137,7 @@ class STDiT(nn.Module):
                                   (d,))
     self.blocks = LayerStack(self.depth // 2, self.num_heads, self.mlp_ratio, self.causal_temporal,
                              self.temporal_pos == "rope", self.attention_impl, dtype,
-                             self.scan_layers, self.remat)
+                             self.scan_layers, self.remat, self.temporal_first)
     self.final_layer = layers.FinalLayer(self.patch_size ** 2 * self.in_channels, dtype=dtype)
 
   @property

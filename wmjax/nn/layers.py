@@ -311,7 +311,9 @@ class STBlock(nn.Module):
 
 
 class STLayer(nn.Module):
-  """One spatial block followed by one temporal block (the unit that is stacked / scanned).
+  """One spatial block and one temporal block (the unit that is stacked / scanned): spatial
+  first (IRASim), or temporal first, which lets every spatial block of the stack see the earlier
+  frames (the first spatial block of a spatial-first stack sees only its own noisy frame).
 
   ``x [B, T, P, D]``, ``spatial_cond`` and ``temporal_cond`` ``[B, T, D]``, optional temporal
   ``cache`` (see :class:`STBlock`) -> ``(x', kv)`` with ``x' [B, T, P, D]`` and ``kv`` the temporal
@@ -326,14 +328,20 @@ class STLayer(nn.Module):
   attention_impl: str | None = "xla"
   dtype: Dtype = jnp.float32
   return_kv: bool = False
+  temporal_first: bool = False
 
   @nn.compact
   def __call__(self, x, spatial_cond, temporal_cond, cache=None):
     common = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio,
                   attention_impl=self.attention_impl, dtype=self.dtype)
-    x, _ = STBlock("spatial", **common, name="spatial")(x, spatial_cond)
-    x, kv = STBlock("temporal", causal=self.causal, rope=self.rope, **common,
-                    name="temporal")(x, temporal_cond, cache)
+    spatial = STBlock("spatial", **common, name="spatial")
+    temporal = STBlock("temporal", causal=self.causal, rope=self.rope, **common, name="temporal")
+    if self.temporal_first:
+      x, kv = temporal(x, temporal_cond, cache)
+      x, _ = spatial(x, spatial_cond)
+    else:
+      x, _ = spatial(x, spatial_cond)
+      x, kv = temporal(x, temporal_cond, cache)
     return x, kv if self.return_kv else None
 
 
