@@ -409,6 +409,13 @@ def _float_tuple(text: str) -> tuple[float, ...]:
   return tuple(float(part) for part in text.split(",") if part.strip())
 
 
+def _bool(text: str) -> bool:
+  value = text.strip().lower()
+  if value not in ("true", "false", "1", "0"):
+    raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
+  return value in ("true", "1")
+
+
 def _add_data_commands(sub) -> None:
   from wmjax.data.sources import GENERATED
   data = sub.add_parser("data", help="prepare, convert and summarise datasets")
@@ -422,7 +429,8 @@ def _add_data_commands(sub) -> None:
                                      description=cmd_data_prepare.__doc__)
     dataset.add_argument("--data_dir", required=True, help="TFDS data directory to write into")
     for field in dataclasses.fields(params_class):
-      parse = _float_tuple if isinstance(field.default, tuple) else type(field.default)
+      parse = (_float_tuple if isinstance(field.default, tuple) else
+               _bool if isinstance(field.default, bool) else type(field.default))
       shown = ",".join(map(str, field.default)) if isinstance(field.default, tuple) else field.default
       dataset.add_argument(f"--{field.name}", type=parse, default=field.default,
                            help=f"{name} {field.name} (default {shown})")

@@ -35,11 +35,16 @@ def run_row(name: str, seed: int, overrides: list[str], workdir_root: str,
   workdir = os.path.join(workdir_root, f"{name}-seed{seed}")
   train = ["wmjax", "train", "--config", config, "--workdir", workdir,
            f"--config.seed={seed}", *overrides]
-  evaluate = ["wmjax", "evaluate", "--workdir", workdir, "--protocols", "short,long",
-              "--videos", "4"]
   start = time.time()
   subprocess.run(train, check=True)
-  train_s = time.time() - start
+  return record(name, seed, overrides, workdir, train, time.time() - start)
+
+
+def record(name: str, seed: int, overrides: list[str], workdir: str, train: list[str],
+           train_s: float) -> dict:
+  """Evaluate a trained workdir and save its row."""
+  evaluate = ["wmjax", "evaluate", "--workdir", workdir, "--protocols", "short,long",
+              "--videos", "4"]
   subprocess.run(evaluate, check=True)
   outs = sorted(glob.glob(os.path.join(workdir, "eval", "test-step*")), key=os.path.getmtime)
   with open(os.path.join(outs[-1], "metrics.json")) as f:
@@ -103,11 +108,26 @@ def main(argv=None) -> int:
   run.add_argument("--seed", type=int, default=0)
   run.add_argument("--config", default="configs/gridworld.py")
   run.add_argument("--workdir_root", default="workdirs/gridworld_ablate")
-  run.add_argument("overrides", nargs="*", help="--config.KEY=VALUE overrides (after --)")
+  rec = sub.add_parser("record", help="evaluate a workdir trained elsewhere and save its row")
+  rec.add_argument("name")
+  rec.add_argument("--seed", type=int, default=0)
+  rec.add_argument("--workdir", required=True)
+  rec.add_argument("--train_command", required=True, help="the command that trained it")
+  rec.add_argument("--train_s", type=float, required=True, help="its training wall time")
   sub.add_parser("table", help="print the rows as Markdown")
-  args = parser.parse_args(argv)
+  args, overrides = parser.parse_known_args(argv)
+  # after `--`: --config.KEY=VALUE overrides (for `record`: today's equivalent of its config)
+  args.overrides = [o for o in overrides if o != "--"]
+  unknown = [o for o in args.overrides if not o.startswith("--config.")]
+  if unknown or (args.overrides and args.command == "table"):
+    parser.error(f"expected --config.KEY=VALUE overrides, got {unknown or args.overrides}")
   if args.command == "table":
     print(table())
+    return 0
+  if args.command == "record":
+    row = record(args.name, args.seed, args.overrides, args.workdir, shlex.split(args.train_command),
+                 args.train_s)
+    print(json.dumps(row, indent=1))
     return 0
   row = run_row(args.name, args.seed, args.overrides, args.workdir_root, args.config)
   print(json.dumps(row, indent=1))
