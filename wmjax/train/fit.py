@@ -86,7 +86,8 @@ def parse_target(spec: str) -> Target:
            "v6e:2x2, or local")
   if name == "local":
     devices = jax.devices()
-    stats = devices[0].memory_stats() or {}
+    # memory_stats answers only for this process's devices (several processes: jax.distributed)
+    stats = jax.local_devices()[0].memory_stats() or {}
     return Target(spec, devices[0].platform, tuple(devices), stats.get("bytes_limit"))
   if name == "cpu" or name in GPU_TARGETS:
     if count and not count.isdigit() or count == "0":
