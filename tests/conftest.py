@@ -14,6 +14,7 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 from wmjax.config import load_config  # noqa: E402
+from wmjax.data import gridworld  # noqa: E402
 from wmjax.rollout import WorldModel  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,3 +53,12 @@ def _free_compiled_programs():
   (interpret-mode Pallas kernels among them), and one process keeps them all otherwise."""
   yield
   jax.clear_caches()
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+  """A small gridworld (16 train, 2 test episodes of 12 steps) for training-loop tests."""
+  path = tmp_path_factory.mktemp("data")
+  gridworld.prepare(str(path), gridworld.GridworldConfig(train_episodes=16, test_episodes=2,
+                                                         episode_length=12))
+  return path

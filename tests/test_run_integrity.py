@@ -75,14 +75,6 @@ def _compilation_cache(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def data_dir(tmp_path_factory):
-  path = tmp_path_factory.mktemp("data")
-  gridworld.prepare(str(path), gridworld.GridworldConfig(train_episodes=16, test_episodes=2,
-                                                         episode_length=12))
-  return path
-
-
-@pytest.fixture(scope="module")
 def trained(data_dir, tmp_path_factory):
   """4 steps, checkpoints 2 and 4, every step in metrics.jsonl."""
   workdir = tmp_path_factory.mktemp("trained") / "run"

@@ -14,7 +14,6 @@ import orbax.checkpoint as ocp
 import pytest
 
 from conftest import ROOT, tiny_config
-from wmjax.data import gridworld
 from wmjax.launch import launch_local
 from wmjax.train.loop import NonFiniteLossError, train
 from wmjax.train.step import ShardedTrainer
@@ -31,14 +30,6 @@ def _overrides(data_dir, **extra):
   }
   values.update(extra)
   return [f"{k}={v}" for k, v in values.items()]
-
-
-@pytest.fixture(scope="module")
-def data_dir(tmp_path_factory):
-  path = tmp_path_factory.mktemp("data")
-  gridworld.prepare(str(path), gridworld.GridworldConfig(train_episodes=16, test_episodes=2,
-                                                         episode_length=12))
-  return path
 
 
 def _env(devices=2):

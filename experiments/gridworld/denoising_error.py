@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmjax.data import gridworld
+from wmjax.diffusion import GaussianDiffusion
 from wmjax.eval import metrics
 from wmjax.train.checkpoint import load_model
 from wmjax.train.data import build_data, eval_windows
@@ -41,15 +42,13 @@ def denoising_errors(workdir: str, windows: int = 64, fractions=(0.0, 0.1, 0.25,
   context_level = process.level(config.sampling.context_level)
   noise = jax.random.normal(jax.random.key(0), frames.shape)
   colors = gridworld.COLORS[:config.data.gridworld.num_squares]
+  discrete = isinstance(process, GaussianDiffusion)  # integer levels in [0, T-1]
   rows = []
   for fraction in fractions:
-    if hasattr(process, "alphas_cumprod"):
-      level = int(round(fraction * (process.num_timesteps - 1)))
-    else:
-      level = float(fraction)
+    level = int(round(fraction * (process.num_timesteps - 1))) if discrete else float(fraction)
     levels = jnp.concatenate([jnp.full((b, c), context_level, jnp.float32),
                               jnp.full((b, t - c), level, jnp.float32)], axis=1)
-    if hasattr(process, "alphas_cumprod"):
+    if discrete:
       levels = levels.astype(jnp.int32)
     noisy = process.add_noise(frames, levels, noise)
     noisy = noisy.at[:, :c].set(process.context_input(frames[:, :c], context_level))
