@@ -10,8 +10,8 @@ import pytest
 
 from conftest import ROOT, perturbed, tiny_config
 from wmjax.config import load_config
-from wmjax.nn import STDiT, forward_flops
-from wmjax.rollout import WorldModel
+from wmjax.nn import STDiT, forward_flops, layers
+from wmjax.model import WorldModel
 
 PAPER_SIZES = [("irasim.py:S", 33e6), ("irasim.py:B", 132e6), ("irasim.py:L", 461e6),
                ("irasim.py:XL", 679e6), ("wpe_600m.py", 609e6)]
@@ -146,10 +146,27 @@ def test_bf16_compute_keeps_float32_params():
   assert float(jnp.abs(out - ref).max()) < 0.1 * float(jnp.abs(ref).max()) + 1e-3
 
 
-def test_rope_temporal_positions_run():
-  model, params, (x, t, a) = _model("frame", temporal_pos="rope")
+@pytest.mark.parametrize("fields", [dict(temporal_pos="rope"), dict(spatial_pos="rope"),
+                                    dict(temporal_pos="rope", spatial_pos="rope")])
+def test_rope_positions_run(fields):
+  model, params, (x, t, a) = _model("frame", **fields)
   out = model.apply(params, x, t, a)
   assert out.shape == x.shape and bool(jnp.isfinite(out).all())
+
+
+def test_axial_rope_scores_depend_only_on_the_2d_offset():
+  q, k = jax.random.normal(jax.random.key(0), (2, 1, 6, 2, 8))
+  grid = jnp.asarray([[0, 0], [0, 3], [2, 1], [4, 4], [1, 5], [3, 0]])
+
+  def scores(positions):
+    return jnp.einsum("nqhd,nkhd->nhqk", layers.rope(q, positions), layers.rope(k, positions))
+
+  np.testing.assert_allclose(scores(grid + jnp.asarray([5, -2])), scores(grid), atol=1e-4)
+  # a shift along one axis only is still a shift: the two axes are rotated separately
+  moved = scores(grid.at[:, 1].add(jnp.arange(6)))
+  assert float(jnp.abs(moved - scores(grid)).max()) > 1e-2
+  with pytest.raises(ValueError, match="divisible by 4"):
+    layers.rope(q[..., :6], grid)
 
 
 @pytest.mark.parametrize("cond", ["frame", "video", "per_frame"])
@@ -206,6 +223,7 @@ def _cached_output(model, params, x, t, a, c, mask=None, drop=None):
     ("per_frame", dict(temporal_pos="rope", scan_layers=False), 1),
     ("per_frame", {}, 3),
     ("per_frame", dict(temporal_first=True), 2),
+    ("per_frame", dict(temporal_first=True, spatial_pos="rope", temporal_pos="rope"), 2),
 ])
 def test_extend_after_the_cached_context_equals_the_whole_window(cond, fields, c):
   model, params, (x, t, a) = _model(cond, **fields)

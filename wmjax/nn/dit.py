@@ -44,13 +44,16 @@ REMAT_POLICIES = {
     "dots": jax.checkpoint_policies.dots_with_no_batch_dims_saveable,  # keep weight matmuls
     "dots_all": jax.checkpoint_policies.dots_saveable,  # keep every matmul, attention's too
 }
-TEMPORAL_POSITIONS = ("sincos", "rope")
+# How a token knows where it is: "sincos" adds fixed sin-cos embeddings to the tokens; "rope"
+# rotates queries and keys (1-D over frames, axial 2-D over the patch grid), so attention scores
+# depend on relative offsets.
+POSITIONS = ("sincos", "rope")
 
 
 class LayerStack(nn.Module):
   """``num_layers`` spatial+temporal layers, scanned (stacked params, fast compiles) or unrolled.
 
-  ``x [B, T, P, D]`` -> ``(x', kv)``. ``cache`` holds every layer's temporal keys and values of
+  ``x [B, T, P, D]``, ``patch_positions [P, 2]`` -> ``(x', kv)``. ``cache`` holds every layer's temporal keys and values of
   ``Tc`` earlier frames (``[layers, B*P, Tc, H, d]`` each); with ``return_kv`` ``kv`` is the same
   for ``x``'s frames, else None.
   """
@@ -65,19 +68,22 @@ class LayerStack(nn.Module):
   scan: bool
   remat: str
   temporal_first: bool = False
+  spatial_rope: bool = False
 
   @nn.compact
-  def __call__(self, x, spatial_cond, temporal_cond, cache=None, return_kv: bool = False):
+  def __call__(self, x, spatial_cond, temporal_cond, patch_positions, cache=None,
+               return_kv: bool = False):
     layer_cls = layers.STLayer
     if self.remat != "none":
       layer_cls = nn.remat(layer_cls, prevent_cse=not self.scan,
                            policy=REMAT_POLICIES[self.remat])
     kwargs = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio, causal=self.causal,
                   rope=self.rope, attention_impl=self.attention_impl, dtype=self.dtype,
-                  return_kv=return_kv, temporal_first=self.temporal_first)
-    inputs = (x, spatial_cond, temporal_cond) + (() if cache is None else (cache,))
+                  return_kv=return_kv, temporal_first=self.temporal_first,
+                  spatial_rope=self.spatial_rope)
+    inputs = (x, spatial_cond, temporal_cond, patch_positions) + (() if cache is None else (cache,))
     if self.scan:
-      in_axes = (nn.broadcast, nn.broadcast) + (() if cache is None else (0,))
+      in_axes = (nn.broadcast,) * 3 + (() if cache is None else (0,))
       stack = nn.scan(layer_cls, variable_axes={"params": 0}, split_rngs={"params": True},
                       in_axes=in_axes, length=self.num_layers,
                       metadata_params={nn.PARTITION_NAME: "layers"})
@@ -85,7 +91,8 @@ class LayerStack(nn.Module):
     kvs = []
     for i in range(self.num_layers):
       layer_cache = None if cache is None else jax.tree.map(lambda a: a[i], cache)
-      x, kv = layer_cls(**kwargs, name=f"layer_{i}")(x, spatial_cond, temporal_cond, layer_cache)
+      x, kv = layer_cls(**kwargs, name=f"layer_{i}")(x, spatial_cond, temporal_cond,
+                                                     patch_positions, layer_cache)
       kvs.append(kv)
     return x, (jax.tree.map(lambda *a: jnp.stack(a), *kvs) if return_kv else None)
 
@@ -107,7 +114,8 @@ class STDiT(nn.Module):
   action_dropout: float = 0.1
   causal_temporal: bool = False
   temporal_first: bool = False  # each layer: temporal block, then spatial (default spatial first)
-  temporal_pos: str = "sincos"
+  temporal_pos: str = "sincos"  # a key of POSITIONS, across frames
+  spatial_pos: str = "sincos"  # a key of POSITIONS, over the patch grid
   attention_impl: str | None = "xla"  # a backend of wmjax.nn.attention (None: xla)
   dtype: str = "float32"  # compute dtype; parameters are always float32
   scan_layers: bool = True
@@ -116,8 +124,9 @@ class STDiT(nn.Module):
   def setup(self):
     if self.cond not in COND_MODES:
       raise ValueError(f"cond must be one of {COND_MODES}, got {self.cond!r}")
-    if self.temporal_pos not in TEMPORAL_POSITIONS:
-      raise ValueError(f"temporal_pos must be one of {TEMPORAL_POSITIONS}, got {self.temporal_pos!r}")
+    for field in ("temporal_pos", "spatial_pos"):
+      if getattr(self, field) not in POSITIONS:
+        raise ValueError(f"{field} must be one of {POSITIONS}, got {getattr(self, field)!r}")
     if self.remat not in REMAT_POLICIES:
       raise ValueError(f"remat must be one of {sorted(REMAT_POLICIES)}, got {self.remat!r}")
     if self.depth % 2:
@@ -137,7 +146,8 @@ class STDiT(nn.Module):
                                   (d,))
     self.blocks = LayerStack(self.depth // 2, self.num_heads, self.mlp_ratio, self.causal_temporal,
                              self.temporal_pos == "rope", self.attention_impl, dtype,
-                             self.scan_layers, self.remat, self.temporal_first)
+                             self.scan_layers, self.remat, self.temporal_first,
+                             self.spatial_pos == "rope")
     self.final_layer = layers.FinalLayer(self.patch_size ** 2 * self.in_channels, dtype=dtype)
 
   @property
@@ -292,12 +302,17 @@ class STDiT(nn.Module):
                                                                 drop_actions, first)
     gh, gw = h // self.patch_size, w // self.patch_size
     tokens = self.patch_embed(x.astype(dtype))  # [B, m, P, D]
-    pos = layers.sincos_2d(self.hidden_size, gh, gw)[None, None]
+    pos = np.zeros((1, 1, 1, self.hidden_size))
+    if self.spatial_pos == "sincos":
+      pos = pos + layers.sincos_2d(self.hidden_size, gh, gw)[None, None]
     if self.temporal_pos == "sincos":
       pos = pos + layers.sincos_1d(self.hidden_size, np.arange(first, first + m))[None, :, None]
     tokens = tokens + pos.astype(dtype)
+    rows, cols = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")
+    patch_positions = jnp.asarray(np.stack([rows.reshape(-1), cols.reshape(-1)], axis=1))
 
-    tokens, kv = self.blocks(tokens, spatial_cond, temporal_cond, cache, return_kv)
+    tokens, kv = self.blocks(tokens, spatial_cond, temporal_cond, patch_positions, cache,
+                             return_kv)
     if return_kv:
       return None, kv
     out = self.final_layer(tokens, final_cond)  # [B, m, P, p*p*C]

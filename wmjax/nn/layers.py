@@ -87,7 +87,21 @@ def timestep_features(t: jax.Array, dim: int = 256, max_period: float = 10000.0)
 
 
 def rope(x: jax.Array, positions: jax.Array, base: float = 10000.0) -> jax.Array:
-  """Rotary position embedding over the last axis of ``x [N, L, H, d]`` at ``positions [L]``."""
+  """Rotary position embedding over the last axis of ``x [N, L, H, d]``.
+
+  ``positions [L]`` rotates the whole head dimension by one position per token; ``positions
+  [L, k]`` (e.g. the (row, column) of a patch) is axial: the head dimension splits into ``k`` equal
+  parts and part ``i`` is rotated by ``positions[:, i]``, so a query-key score depends only on
+  the offset between the two tokens along every axis.
+  """
+  if positions.ndim == 2:
+    axes = positions.shape[1]
+    if x.shape[-1] % (2 * axes):
+      raise ValueError(f"axial RoPE over {axes} axes needs a head dimension divisible by "
+                       f"{2 * axes}, got {x.shape[-1]}")
+    parts = jnp.split(x, axes, axis=-1)
+    return jnp.concatenate([rope(part, positions[:, i], base) for i, part in enumerate(parts)],
+                           axis=-1)
   d = x.shape[-1]
   if d % 2:
     raise ValueError(f"RoPE needs an even head dimension, got {d}")
@@ -201,7 +215,8 @@ class Mlp(nn.Module):
 class Attention(nn.Module):
   """Multi-head self-attention over axis 1 of ``x [N, L, D]`` (:func:`wmjax.nn.attention.attend`).
 
-  ``causal`` masks future positions; ``rope`` rotates queries and keys by their position.
+  ``causal`` masks future positions; ``rope`` rotates queries and keys by their position:
+  ``positions`` (``[L]`` or axial ``[L, k]``, see :func:`rope`), by default ``Lc .. Lc+L-1``.
   ``cache = (k, v)``, each ``[N, Lc, H, d]``, holds the keys and values of ``Lc`` earlier positions:
   ``x`` is then at positions ``Lc .. Lc+L-1`` and attends to the cache as well. Returns the output
   ``[N, L, D]`` and ``x``'s own keys and values (``[N, L, H, d]`` each, RoPE applied), which a
@@ -215,7 +230,8 @@ class Attention(nn.Module):
   dtype: Dtype = jnp.float32
 
   @nn.compact
-  def __call__(self, x: jax.Array, cache: tuple[jax.Array, jax.Array] | None = None
+  def __call__(self, x: jax.Array, cache: tuple[jax.Array, jax.Array] | None = None,
+               positions: jax.Array | None = None
                ) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
     d = x.shape[-1]
     head_dim = d // self.num_heads
@@ -228,7 +244,8 @@ class Attention(nn.Module):
     q, k, v = project("query"), project("key"), project("value")  # [N, L, H, d]
     offset = 0 if cache is None else cache[0].shape[1]
     if self.rope:
-      positions = offset + jnp.arange(x.shape[1])
+      if positions is None:
+        positions = offset + jnp.arange(x.shape[1])
       q, k = rope(q, positions), rope(k, positions)
     keys, values = (k, v) if cache is None else (
         jnp.concatenate([cache[0].astype(k.dtype), k], axis=1),
@@ -274,7 +291,9 @@ class STBlock(nn.Module):
   ``axis='temporal'``: each patch position attends across the T frames (optionally causal), and
   across the ``Tc`` earlier frames of ``cache`` (keys, values ``[B*P, Tc, H, d]``) when given.
   ``cond [B, T, D]`` is the per-frame conditioning vector; it modulates every token of its frame.
-  Returns ``x' [B, T, P, D]`` and, for the temporal axis, the keys and values of ``x``'s frames
+  With ``rope``, ``positions`` are the RoPE positions of the attended axis (for the spatial axis
+  the ``[P, 2]`` (row, column) of each patch: relative 2-D positions; for the temporal axis the
+  frame index by default). Returns ``x' [B, T, P, D]`` and, for the temporal axis, the keys and values of ``x``'s frames
   (``[B*P, T, H, d]`` each; None for the spatial axis).
   """
 
@@ -287,7 +306,7 @@ class STBlock(nn.Module):
   dtype: Dtype = jnp.float32
 
   @nn.compact
-  def __call__(self, x: jax.Array, cond: jax.Array, cache=None):
+  def __call__(self, x: jax.Array, cond: jax.Array, cache=None, positions=None):
     x = constrain(x)
     b, t, p, d = x.shape
     shift_a, scale_a, gate_a, shift_m, scale_m, gate_m = (
@@ -298,7 +317,7 @@ class STBlock(nn.Module):
     if self.axis == "spatial":
       if cache is not None:
         raise ValueError("spatial attention takes no cache: frames attend within themselves")
-      h, kv = attention(h.reshape(b * t, p, d))[0].reshape(b, t, p, d), None
+      h, kv = attention(h.reshape(b * t, p, d), positions=positions)[0].reshape(b, t, p, d), None
     elif self.axis == "temporal":
       h, kv = attention(h.transpose(0, 2, 1, 3).reshape(b * p, t, d), cache)
       h = h.reshape(b, p, t, d).transpose(0, 2, 1, 3)
@@ -315,8 +334,9 @@ class STLayer(nn.Module):
   first (IRASim), or temporal first, which lets every spatial block of the stack see the earlier
   frames (the first spatial block of a spatial-first stack sees only its own noisy frame).
 
-  ``x [B, T, P, D]``, ``spatial_cond`` and ``temporal_cond`` ``[B, T, D]``, optional temporal
-  ``cache`` (see :class:`STBlock`) -> ``(x', kv)`` with ``x' [B, T, P, D]`` and ``kv`` the temporal
+  ``x [B, T, P, D]``, ``spatial_cond`` and ``temporal_cond`` ``[B, T, D]``, the ``[P, 2]`` (row,
+  column) of every patch (used by the spatial block's RoPE when ``spatial_rope``), optional
+  temporal ``cache`` (see :class:`STBlock`) -> ``(x', kv)`` with ``x' [B, T, P, D]`` and ``kv`` the temporal
   keys and values of ``x``'s frames when ``return_kv`` (else None); the ``(carry, output)`` pair is
   what ``nn.scan`` expects.
   """
@@ -329,18 +349,19 @@ class STLayer(nn.Module):
   dtype: Dtype = jnp.float32
   return_kv: bool = False
   temporal_first: bool = False
+  spatial_rope: bool = False
 
   @nn.compact
-  def __call__(self, x, spatial_cond, temporal_cond, cache=None):
+  def __call__(self, x, spatial_cond, temporal_cond, patch_positions, cache=None):
     common = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio,
                   attention_impl=self.attention_impl, dtype=self.dtype)
-    spatial = STBlock("spatial", **common, name="spatial")
+    spatial = STBlock("spatial", rope=self.spatial_rope, **common, name="spatial")
     temporal = STBlock("temporal", causal=self.causal, rope=self.rope, **common, name="temporal")
     if self.temporal_first:
       x, kv = temporal(x, temporal_cond, cache)
-      x, _ = spatial(x, spatial_cond)
+      x, _ = spatial(x, spatial_cond, positions=patch_positions)
     else:
-      x, _ = spatial(x, spatial_cond)
+      x, _ = spatial(x, spatial_cond, positions=patch_positions)
       x, kv = temporal(x, temporal_cond, cache)
     return x, kv if self.return_kv else None
 
