@@ -26,7 +26,8 @@ from common import add_config_arguments, median_seconds, peak_memory, write_resu
 from profile_ops import format_table, top_ops
 from wmjax.config import load_config
 from wmjax.nn import forward_flops
-from wmjax.rollout import WorldModel, block_flops, rollout
+from wmjax.model import WorldModel
+from wmjax.rollout import block_flops, rollout
 
 
 def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,

@@ -27,7 +27,7 @@ from profile_ops import format_table, top_ops
 from wmjax.config import load_config
 from wmjax.nn import forward_flops
 from wmjax.parallel import make_mesh
-from wmjax.rollout import WorldModel
+from wmjax.model import WorldModel
 from wmjax.train.step import ShardedTrainer
 
 PEAK_BF16_TFLOPS = {"H100": 989.0, "H200": 989.0, "A100": 312.0}

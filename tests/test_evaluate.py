@@ -20,7 +20,7 @@ from wmjax.data import gridworld
 from wmjax.data.stats import ActionStats
 from wmjax.eval import inputs, protocols, video
 from wmjax.rollout import rollout
-from wmjax.train.checkpoint import LoadedModel, load_model
+from wmjax.model import LoadedModel, load_model
 from wmjax.train.loop import train
 
 # ----------------------------------------------------------------------------- video files

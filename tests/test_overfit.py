@@ -8,7 +8,8 @@ import optax
 
 from conftest import tiny_config
 from wmjax.diffusion import diffusion_loss
-from wmjax.rollout import WorldModel, rollout
+from wmjax.model import WorldModel
+from wmjax.rollout import rollout
 
 
 def moving_square_clip(frames=6, size=16, square=4, seed=0):

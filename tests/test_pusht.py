@@ -13,7 +13,7 @@ from wmjax import cli, pusht
 from wmjax.config import load_config
 from wmjax.data import pusht as pusht_data
 from wmjax.data.sources import ArrayRecordEpisodes
-from wmjax.env import frames_to_model
+from wmjax.frames import to_model
 from wmjax.eval import rewards
 from wmjax.train.loop import train
 
@@ -29,10 +29,10 @@ def test_frame_coverage_and_centroids_follow_the_simulator():
                            pusht.random_initial_states(rng, 24, max_offset=150, max_angle=1.5)])
   frames, info = _render(states, 96)
   assert info["coverage"][0] == pytest.approx(1.0)
-  estimate = np.asarray(pusht.frame_coverage(frames_to_model(frames)))
+  estimate = np.asarray(pusht.frame_coverage(to_model(frames)))
   assert estimate[0] > 0.97
   assert np.corrcoef(estimate, info["coverage"])[0, 1] > 0.95
-  block, agent, seen = (np.asarray(x) for x in pusht.centroids(frames_to_model(frames)))
+  block, agent, seen = (np.asarray(x) for x in pusht.centroids(to_model(frames)))
   assert seen.all()
   np.testing.assert_allclose(agent, info["state"][:, :2], atol=6.0)
   # the block's centre of area, in the world, from its body pose
@@ -81,7 +81,7 @@ def test_reward_functions():
   frames, _ = _render(states)
   videos = np.stack([frames, frames[::-1]])  # [2 rollouts, 2 frames]
   np.testing.assert_allclose(rewards.pusht_coverage(videos), pusht.frame_coverage(
-      frames_to_model(frames[::-1])), rtol=1e-6)
+      to_model(frames[::-1])), rtol=1e-6)
   distance = rewards.GoalImageDistance(frames[0])(videos)
   assert distance[1] == 0.0 and distance[0] < -0.01
   with pytest.raises(ValueError, match="goal image must be"):

@@ -16,9 +16,10 @@ from wmjax.config import load_config
 from wmjax.data.latents import LatentEpisodes
 from wmjax.data.rlds import make_window
 from wmjax.data.sources import ArrayRecordEpisodes
-from wmjax.env import WorldModelEnv, frames_to_model
+from wmjax.env import WorldModelEnv
+from wmjax.frames import to_model
 from wmjax.eval.protocols import evaluate_checkpoint
-from wmjax.train.checkpoint import load_model
+from wmjax.model import load_model
 from wmjax.train.loop import train
 
 pytest.importorskip("torch")
@@ -107,7 +108,7 @@ def test_pre_encoded_latents_train_like_frames(assets, tmp_path):
   codec = make_codec(_config("bridge.py", assets).codec)
   raw = ArrayRecordEpisodes(builders["bridge"], "train").episode(2)
   window = make_window(raw, 1, 4, RESOLUTION)
-  expected = codec.encode(frames_to_model(window["frames"]))
+  expected = codec.encode(to_model(window["frames"]))
   np.testing.assert_allclose(episode.images.astype(np.float32), expected, atol=2e-2, rtol=1e-2)
 
   latent_config = _config("bridge.py", assets, **{"data.latents_dir": str(out)})

@@ -24,9 +24,10 @@ from wmjax.config import ConfigError, load_config
 from wmjax.data import gridworld
 from wmjax.data.pipeline import WindowSource, training_pipeline
 from wmjax.data.sources import ArrayRecordEpisodes, action_stats
+from wmjax.errors import CheckpointError
 from wmjax.eval import inputs
-from wmjax.rollout import WorldModel
-from wmjax.train.checkpoint import CheckpointError, Checkpointer, load_model
+from wmjax.model import WorldModel, load_model
+from wmjax.train.checkpoint import Checkpointer
 from wmjax.train.loop import NonFiniteLossError, train
 from wmjax.train.resume import ConfigChangeError, check_resume
 from wmjax.train.step import ShardedTrainer

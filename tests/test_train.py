@@ -7,7 +7,7 @@ import pytest
 
 from conftest import tiny_config
 from wmjax.parallel import make_mesh
-from wmjax.rollout import WorldModel
+from wmjax.model import WorldModel
 from wmjax.train.step import ShardedTrainer
 
 OVERRIDES = ("model.in_channels=3", "model.action_dim=4", "model.hidden_size=32",

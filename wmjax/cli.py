@@ -127,12 +127,12 @@ def cmd_rollout(args, extra) -> int:
   frames.npy (uint8 [B, c+N, H, W, 3])."""
   import os
 
-  from wmjax.env import frames_to_model
+  from wmjax.frames import to_model
   from wmjax.eval import inputs
   from wmjax.eval import video as video_lib
-  from wmjax.eval.metrics import to_uint8
+  from wmjax.frames import to_uint8
   from wmjax.rollout import rollout
-  from wmjax.train.checkpoint import load_model
+  from wmjax.model import load_model
 
   model = load_model(args.workdir, step=args.step, params=args.params,
                      overrides=_overrides(extra), param_dtype=args.param_dtype)
@@ -163,7 +163,7 @@ def cmd_rollout(args, extra) -> int:
                      f"{args.horizon}")
   horizon = args.horizon or min(config.rollout.horizon, room)
   encode_key, rollout_key = jax.random.split(jax.random.key(args.seed))
-  context = model.codec.encode(frames_to_model(frames), encode_key)
+  context = model.codec.encode(to_model(frames), encode_key)
   decoded = np.asarray(model.codec.decode(rollout(model.world_model, model.params, context,
                                                   actions, rollout_key, horizon=horizon)))
   if not np.isfinite(decoded).all():
@@ -182,7 +182,7 @@ def cmd_rollout(args, extra) -> int:
 
 
 def _load_for_simulator(args, extra):
-  from wmjax.train.checkpoint import load_model
+  from wmjax.model import load_model
   return load_model(args.workdir, step=args.step, params=args.params, overrides=_overrides(extra))
 
 
@@ -246,7 +246,8 @@ def cmd_info(args, extra) -> int:
   """Parameter count, forward FLOPs, sampling cost and a per-device training-memory estimate of a
   config, without allocating the model."""
   from wmjax.nn import forward_flops
-  from wmjax.rollout import WorldModel, block_flops
+  from wmjax.model import WorldModel
+  from wmjax.rollout import block_flops
 
   config = _config_from_args(args, extra)
   wm = WorldModel.from_config(config)
@@ -377,7 +378,7 @@ def cmd_data_encode(args, extra) -> int:
   from wmjax.data.latents import codec_description, encode_dataset
   from wmjax.data.oxe import specs_from_config
   from wmjax.data.sources import ArrayRecordEpisodes, action_stats, dataset_dir
-  from wmjax.env import frames_to_model
+  from wmjax.frames import to_model
   from wmjax.train.data import member_configs
 
   config = _config_from_args(args, extra)
@@ -399,7 +400,7 @@ def cmd_data_encode(args, extra) -> int:
   stats = action_stats(builder_dir, data.get("train_split", "train"), specs)
   keys = (jax.random.fold_in(jax.random.key(args.seed), i) for i in itertools.count())
   out = encode_dataset(builder_dir, args.out, splits, specs, resolution,
-                       lambda frames: np.asarray(codec.encode(frames_to_model(frames), next(keys))),
+                       lambda frames: np.asarray(codec.encode(to_model(frames), next(keys))),
                        codec_description(config.get("codec")), stats.to_dict())
   print(out)
   return 0
@@ -641,7 +642,7 @@ def main(argv: list[str] | None = None) -> int:
   if args.host_only:
     _host_only()
   from wmjax.config import ConfigError
-  from wmjax.train.errors import RunError
+  from wmjax.errors import RunError
   try:
     return args.func(args, extra)
   except (ConfigError, RunError) as e:

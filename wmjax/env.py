@@ -12,7 +12,7 @@ episode is kept for :meth:`video`.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -20,21 +20,12 @@ import numpy as np
 
 from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.stats import ActionStats
+from wmjax.frames import to_model
+from wmjax.model import LoadedModel, WorldModel
 from wmjax.parallel import shard_rollout_batch
-from wmjax.rollout import WorldModel, block_key, sample_block
-
-if TYPE_CHECKING:
-  from wmjax.train.checkpoint import LoadedModel
+from wmjax.rollout import block_key, sample_block
 
 RewardFn = Callable[[np.ndarray, str | list[str] | None], np.ndarray]
-
-
-def frames_to_model(frames) -> jax.Array:
-  """uint8 frames -> float32 in [-1, 1]; float frames are taken to be in [-1, 1] already."""
-  frames = np.asarray(frames)
-  if frames.dtype == np.uint8:
-    return jnp.asarray(frames, jnp.float32) / 127.5 - 1.0
-  return jnp.asarray(frames, jnp.float32)
 
 
 class WorldModelEnv:
@@ -68,9 +59,9 @@ class WorldModelEnv:
     self._window = None
 
   @classmethod
-  def from_model(cls, model: "LoadedModel", *, context: int | None = None,
+  def from_model(cls, model: LoadedModel, *, context: int | None = None,
                  horizon: int | None = None, **kwargs) -> "WorldModelEnv":
-    """An environment over a loaded checkpoint (:func:`wmjax.train.checkpoint.load_model`): its
+    """An environment over a loaded checkpoint (:func:`wmjax.model.load_model`): its
     codec, action statistics and normalisation, and by default its rollout context / horizon."""
     config = model.config
     return cls(model.world_model, model.params, context=context or config.rollout.context,
@@ -109,7 +100,7 @@ class WorldModelEnv:
     """Start ``B`` episodes from ``initial_frames [B, c0, H, W, C]`` (``1 <= c0 <= context``;
     uint8 or [-1, 1]) with the raw actions between them, ``context_actions [B, c0-1, A]``, if
     known. Returns (the initial frames in [-1, 1], info)."""
-    frames = frames_to_model(initial_frames)
+    frames = jnp.asarray(to_model(initial_frames))
     if frames.ndim != 5 or not 1 <= frames.shape[1] <= self.context:
       raise ValueError(f"initial_frames must be [B, c0, H, W, C] with 1 <= c0 <= "
                        f"{self.context}, got shape {tuple(frames.shape)}")

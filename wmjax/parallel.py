@@ -152,3 +152,9 @@ def mesh_context(*arrays):
     if isinstance(sharding, NamedSharding) and sharding.mesh.size > 1:
       return jax.set_mesh(sharding.mesh)
   return contextlib.nullcontext()
+
+
+def abstract_with_shardings(abstract: Any, shardings: Any) -> Any:
+  """ShapeDtypeStructs carrying the shardings to restore into."""
+  return jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), abstract,
+                      shardings)

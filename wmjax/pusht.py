@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmjax.env import frames_to_model
+from wmjax.frames import to_model
 
 WORKSPACE = 512.0
 GOAL_POSE = (256.0, 256.0, np.pi / 4)  # x, y, theta
@@ -307,7 +307,7 @@ def simulate_policy(policy: PolicyFn, states: np.ndarray, steps: int, *, image_s
   for _ in range(steps):
     if chunk.shape[1] == 0:
       window = np.stack(frames[-context:], 1)
-      chunk = np.asarray(policy(frames_to_model(window), jax.random.fold_in(key, call)))
+      chunk = np.asarray(policy(to_model(window), jax.random.fold_in(key, call)))
       call += 1
     advance(chunk[:, 0])
     chunk = chunk[:, 1:]

@@ -13,112 +13,16 @@ context frames come from ``context_actions`` or, when they are not known, the nu
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from typing import Any
 
 import jax
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 
-from wmjax.diffusion import objectives
-from wmjax.diffusion.sampling import (DenoiseFn, SamplerConfig, classifier_free_guidance,
-                                      context_inputs, sample_window, window_denoiser)
-from wmjax.nn.dit import STDiT
+from wmjax.diffusion.sampling import sample_window
+from wmjax.model import Params, WorldModel
 from wmjax.nn.flops import forward_flops
 from wmjax.parallel import mesh_context
-
-Params = Any
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class WorldModel:
-  """The network, its diffusion process and how it is sampled; hashable by identity (jit-static)."""
-
-  network: STDiT
-  process: objectives.Process
-  sampler: SamplerConfig
-
-  def __post_init__(self):
-    if self.sampler.kv_cache and not self.network.causal_temporal:
-      raise ValueError("sampling.kv_cache=True needs model.causal_temporal=True: with "
-                       "bidirectional temporal attention the context frames attend to the new "
-                       "frames, so their keys and values change at every sampling step")
-
-  @classmethod
-  def from_config(cls, config: ml_collections.ConfigDict) -> "WorldModel":
-    """From a config with ``model`` (STDiT fields), ``diffusion`` and ``sampling`` sections."""
-    d = config.diffusion
-    process = objectives.make_process(d.kind, d.get("schedule", "linear"), d.num_timesteps,
-                                      d.get("prediction", "eps"))
-    sampler = SamplerConfig(**config.sampling.to_dict())
-    if sampler.sampler not in process.samplers:
-      raise ValueError(f"sampling.sampler={sampler.sampler!r} does not fit diffusion.kind="
-                       f"{d.kind!r}; expected one of {process.samplers}")
-    return cls(STDiT(**config.model.to_dict()), process, sampler)
-
-  def init(self, rng: jax.Array, frame_shape: tuple[int, int, int], frames: int | None = None
-           ) -> Params:
-    """Initial variables for frames of ``frame_shape = (H, W, C)``."""
-    n = frames or self.network.num_frames
-    x = jnp.zeros((1, n) + tuple(frame_shape), jnp.float32)
-    actions = jnp.zeros((1, n - 1, self.network.action_dim), jnp.float32)
-    return self.network.init(rng, x, jnp.zeros((1, n), jnp.float32), actions)
-
-  # Classifier-free guidance runs the network on the batch twice, conditional then null.
-
-  @property
-  def guided(self) -> bool:
-    return self.sampler.guidance_scale != 1.0
-
-  def _twice(self, x: jax.Array) -> jax.Array:
-    return jnp.concatenate([x, x], axis=0) if self.guided else x
-
-  def _conditioning(self, actions: jax.Array, action_mask: jax.Array):
-    """``(actions, action_mask, drop_actions)`` of the network's batch."""
-    if not self.guided:
-      return actions, action_mask, None
-    b = actions.shape[0]
-    drop = jnp.concatenate([jnp.zeros((b,), bool), jnp.ones((b,), bool)])
-    return self._twice(actions), self._twice(action_mask), drop
-
-  def _guide(self, out: jax.Array) -> jax.Array:
-    if not self.guided:
-      return out
-    b = out.shape[0] // 2
-    return classifier_free_guidance(out[:b], out[b:], self.sampler.guidance_scale)
-
-  def denoise(self, params: Params, x: jax.Array, levels: jax.Array, actions: jax.Array,
-              action_mask: jax.Array) -> jax.Array:
-    """Network output for the window ``x [B, T, ...]`` at process levels ``[B, T]``, with guidance."""
-    t = self.process.model_time(levels)
-    out = self.network.apply(params, self._twice(x), self._twice(t),
-                             *self._conditioning(actions, action_mask))
-    return self._guide(out)
-
-  def new_frame_denoiser(self, params: Params, context: jax.Array, actions: jax.Array,
-                         action_mask: jax.Array) -> DenoiseFn:
-    """What the sampler calls at every step: ``(x [B, h, ...], levels [B, h]) -> out`` for the
-    ``h`` frames after the clean ``context [B, c, ...]``, under the window's ``actions
-    [B, c+h-1, A]`` and ``action_mask [B, c+h-1]``. With ``sampler.kv_cache`` the context goes
-    through the network once, here; otherwise every step runs the whole window."""
-    context_in, context_levels = context_inputs(self.process, self.sampler, context)
-    if not self.sampler.kv_cache:
-      return window_denoiser(lambda x, levels: self.denoise(params, x, levels, actions, action_mask),
-                             context_in, context_levels)
-    conditioning = self._conditioning(actions, action_mask)
-    cache = self.network.apply(params, self._twice(context_in),
-                               self._twice(self.process.model_time(context_levels)), *conditioning,
-                               method="encode_context")
-
-    def denoise(x, levels):
-      out = self.network.apply(params, cache, self._twice(x),
-                               self._twice(self.process.model_time(levels)), *conditioning,
-                               method="extend")
-      return self._guide(out)
-
-    return denoise
 
 
 def block_flops(world_model: WorldModel, batch: int, context: int, horizon: int, height: int,
@@ -187,8 +91,12 @@ def check_rollout_inputs(world_model: WorldModel, context, actions, horizon: int
 # ----------------------------------------------------------------------------- one block
 
 
-def _sample_block(world_model: WorldModel, params: Params, context: jax.Array,
-                  window_actions: jax.Array, window_mask: jax.Array, rng: jax.Array) -> jax.Array:
+def sample_block_traceable(world_model: WorldModel, params: Params, context: jax.Array,
+                           window_actions: jax.Array, window_mask: jax.Array, rng: jax.Array
+                           ) -> jax.Array:
+  """:func:`sample_block` without its input checks, for callers that trace it inside their own
+  ``jit`` / ``scan`` (closed-loop policy scans): the ``h`` frames ``[B, h, H, W, C]`` after
+  ``context [B, c, H, W, C]`` under ``window_actions [B, c+h-1, A]`` and ``window_mask``."""
   c = context.shape[1]
   h = window_actions.shape[1] - c + 1
   noise_key, step_key = jax.random.split(rng)
@@ -198,7 +106,7 @@ def _sample_block(world_model: WorldModel, params: Params, context: jax.Array,
   return sample_window(denoise, world_model.process, world_model.sampler, noise, step_key)
 
 
-_sample_block_jit = jax.jit(_sample_block, static_argnums=0)
+_sample_block_jit = jax.jit(sample_block_traceable, static_argnums=0)
 
 
 def sample_block(world_model: WorldModel, params: Params, context: jax.Array,
@@ -245,7 +153,7 @@ def _rollout(world_model: WorldModel, params: Params, context: jax.Array, action
 
   def body(ctx, block):
     window_actions, window_mask, key = block
-    new = _sample_block(world_model, params, ctx, window_actions, window_mask, key)
+    new = sample_block_traceable(world_model, params, ctx, window_actions, window_mask, key)
     return jnp.concatenate([ctx, new], axis=1)[:, -c:], new
 
   _, new_frames = jax.lax.scan(body, context.astype(jnp.float32),

@@ -23,7 +23,7 @@ import numpy as np
 from wmjax.data import gridworld
 from wmjax.diffusion import GaussianDiffusion
 from wmjax.eval import metrics
-from wmjax.train.checkpoint import load_model
+from wmjax.model import load_model
 from wmjax.train.data import build_data, eval_windows
 
 

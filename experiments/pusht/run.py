@@ -98,7 +98,7 @@ def train_classifier(model_dir: str, out: str, success_coverage: float, *, smoke
 
   from wmjax.data.sources import dataset_dir
   from wmjax.eval import rewards
-  from wmjax.train.checkpoint import load_model
+  from wmjax.model import load_model
 
   config = load_model(model_dir).config
   builder_dir = dataset_dir(config.data)

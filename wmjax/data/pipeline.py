@@ -27,6 +27,7 @@ import numpy as np
 from wmjax.data.rlds import make_window, no_windows_error, window_starts
 from wmjax.data.sources import ArrayRecordEpisodes
 from wmjax.data.stats import ActionStats
+from wmjax.frames import to_model
 
 
 class WindowSource:
@@ -83,10 +84,7 @@ class Normalize:
 def frames_to_float(batch: dict[str, Any]) -> dict[str, Any]:
   """uint8 frames -> float32 in [-1, 1] (done last, after workers, to move 4x fewer bytes);
   pre-encoded latents (float16) -> float32."""
-  frames = batch["frames"]
-  if frames.dtype == np.uint8:
-    return dict(batch, frames=frames.astype(np.float32) / 127.5 - 1.0)
-  return dict(batch, frames=frames.astype(np.float32))
+  return dict(batch, frames=to_model(batch["frames"]))
 
 
 def _ignore_interrupts(worker_index: int, worker_count: int) -> None:

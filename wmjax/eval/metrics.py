@@ -30,21 +30,7 @@ import numpy as np
 import scipy.linalg
 import scipy.ndimage
 
-
-def to_unit(frames) -> jax.Array:
-  """uint8 or [-1, 1] floats -> float32 in [0, 1]."""
-  frames = jnp.asarray(frames)
-  if frames.dtype == jnp.uint8:
-    return frames.astype(jnp.float32) / 255.0
-  return jnp.clip((frames.astype(jnp.float32) + 1.0) / 2.0, 0.0, 1.0)
-
-
-def to_uint8(frames) -> np.ndarray:
-  """uint8 or [-1, 1] floats -> uint8 (rounded), on the host."""
-  frames = np.asarray(frames)
-  if frames.dtype == np.uint8:
-    return frames
-  return np.round(np.clip((frames.astype(np.float32) + 1.0) * 127.5, 0.0, 255.0)).astype(np.uint8)
+from wmjax.frames import to_uint8, to_unit
 
 
 def grayscale(frames) -> jax.Array:

@@ -22,8 +22,10 @@ import numpy as np
 
 from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.stats import ActionStats
-from wmjax.env import RewardFn, frames_to_model
-from wmjax.rollout import WorldModel, rollout
+from wmjax.env import RewardFn
+from wmjax.frames import to_model
+from wmjax.model import WorldModel
+from wmjax.rollout import rollout
 
 Proposal = Callable[[Any, jax.Array, int], Any]
 
@@ -101,7 +103,7 @@ class Planner:
   def imagine(self, frames, context_actions, candidates, rng: jax.Array) -> np.ndarray:
     """Roll every candidate out from ``frames [B, c, H, W, 3]`` (raw ``context_actions [B, c-1,
     A]`` between them, or None): ``candidates [B, K, n, A]`` -> RGB ``[B, K, c+n, H, W, 3]``."""
-    frames = frames_to_model(frames)
+    frames = to_model(frames)
     candidates = np.asarray(candidates, np.float32)
     b, k = candidates.shape[:2]
     if candidates.ndim != 4 or b != frames.shape[0]:
@@ -121,7 +123,7 @@ class Planner:
   def plan(self, frames, context_actions, key: jax.Array) -> Plan:
     """Propose, imagine, score and pick the best candidate for each environment."""
     proposal_key, rollout_key = jax.random.split(key)
-    candidates = np.asarray(self.proposal(frames_to_model(frames), proposal_key,
+    candidates = np.asarray(self.proposal(to_model(frames), proposal_key,
                                           self.num_candidates), np.float32)
     b, k = candidates.shape[:2]
     if k != self.num_candidates:

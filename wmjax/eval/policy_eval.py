@@ -30,10 +30,12 @@ from scipy import stats as scipy_stats
 
 from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.stats import ActionStats
-from wmjax.env import RewardFn, WorldModelEnv, frames_to_model
+from wmjax.env import RewardFn, WorldModelEnv
+from wmjax.frames import to_model
 from wmjax.eval.metrics import mean_stderr
 from wmjax.parallel import mesh_context, shard_rollout_batch
-from wmjax.rollout import WorldModel, _sample_block, block_key
+from wmjax.model import WorldModel
+from wmjax.rollout import block_key, sample_block_traceable
 
 Policy = Callable[[Any, jax.Array], Any]
 
@@ -77,7 +79,7 @@ def scan_episodes(world_model: WorldModel, params: Any, policy: Policy, initial_
   actions. Returns ``frames [B, c+num_blocks*horizon, H, W, 3]`` and raw ``actions``. The
   batch is split over the local devices when it divides evenly between them."""
   codec = codec or PixelCodec()
-  frames = frames_to_model(initial_frames)
+  frames = to_model(initial_frames)
   if frames.ndim != 5:
     raise ValueError(f"initial_frames must be [B, c, H, W, C], got {tuple(frames.shape)}")
   b, c = frames.shape[:2]
@@ -137,8 +139,8 @@ def _scan_fn(world_model, policy, codec, stats_key, normalization, num_blocks, h
     actions = normalize(raw)
     window_actions = jnp.concatenate([history, actions], 1)
     window_mask = jnp.concatenate([known, jnp.ones(actions.shape[:2], bool)], 1)
-    new = _sample_block(world_model, params, window, window_actions, window_mask,
-                        block_key(rng, k))
+    new = sample_block_traceable(world_model, params, window, window_actions, window_mask,
+                                 block_key(rng, k))
     new_rgb = codec.decode(new)
     c = window.shape[1]
     keep = window_actions.shape[1] - (c - 1)  # the last c-1 actions stay in the window

@@ -34,12 +34,12 @@ from wmjax.data import gridworld, oxe
 from wmjax.data.pipeline import WindowSource
 from wmjax.data.rlds import make_window
 from wmjax.data.sources import ArrayRecordEpisodes, dataset_dir
-from wmjax.env import frames_to_model
-from wmjax.parallel import shard_rollout_batch
 from wmjax.eval import metrics
 from wmjax.eval import video as video_lib
+from wmjax.frames import to_model, to_uint8, to_unit
+from wmjax.model import LoadedModel, load_model
+from wmjax.parallel import shard_rollout_batch
 from wmjax.rollout import rollout
-from wmjax.train.checkpoint import LoadedModel, load_model
 from wmjax.train.data import member_configs
 
 # name -> whether lower is better (for the report)
@@ -205,7 +205,7 @@ def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, 
     known = steps < (batch.lengths - 1)[:, None]
     encode_key, rollout_key = jax.random.split(jax.random.fold_in(rng, index))
     frames, actions, mask = shard_rollout_batch(  # the batch is split over the local devices
-        frames_to_model(batch.frames[:, first:]), batch.actions, known)
+        to_model(batch.frames[:, first:]), batch.actions, known)
     latents = model.codec.encode(frames, encode_key)
     generated = rollout(
         model.world_model, model.params, latents[:, :context], actions[:, start - 1:],
@@ -213,7 +213,7 @@ def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, 
         context_actions=actions[:, first:start - 1] if context > 1 else None)
     generated = generated[:len(take), context:]
     truth_latents = latents[:len(take), context - 1:]  # the last context frame, then the targets
-    predicted = metrics.to_uint8(model.codec.decode(generated))
+    predicted = to_uint8(model.codec.decode(generated))
     truth = batch.frames[:len(take), start:]
     extras = {k: v[:len(take), start:] for k, v in batch.extras.items()}
     valid = (np.arange(truth.shape[1])[None] + start) < batch.lengths[:len(take), None]
@@ -259,7 +259,7 @@ class FrechetDistances:
     """``truth``, ``predicted``: uint8 clips ``[N, T, H, W, 3]``."""
     for name, (real, fake) in self.moments.items():
       for moments, clips in ((real, truth), (fake, predicted)):
-        x = metrics.to_unit(clips)
+        x = to_unit(clips)
         if name == "fid":
           x = x.reshape((-1,) + x.shape[2:])
         moments.update(np.asarray(self.functions[name](x)).reshape(len(x), -1))

@@ -49,7 +49,7 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
                       scan: bool = False, out: str | None = None, videos: int = 4
                       ) -> dict[str, Any]:
   """Values of ``policies`` in the simulator and in the world model ``model`` (a
-  :class:`wmjax.train.checkpoint.LoadedModel`), and their agreement, for every reward function
+  :class:`wmjax.model.LoadedModel`), and their agreement, for every reward function
   in ``rewards`` (all scored on the same rollouts).
 
   Per policy: ``simulator`` (true final coverage) and, per reward, ``simulator_reward`` (the

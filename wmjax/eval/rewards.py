@@ -26,12 +26,12 @@ import optax
 from flax import serialization
 
 from wmjax import pusht
-from wmjax.env import frames_to_model
+from wmjax.frames import to_model
 from wmjax.eval.vlm import VLMJudge  # noqa: F401  (re-exported: the VLM reward)
 
 
 def _last_frames(frames) -> jax.Array:
-  frames = frames_to_model(frames)
+  frames = to_model(frames)
   if frames.ndim != 5 or frames.shape[-1] != 3:
     raise ValueError(f"rollouts must be [B, T, H, W, 3], got shape {tuple(frames.shape)}")
   return frames[:, -1]
@@ -52,7 +52,7 @@ class GoalImageDistance:
   def __call__(self, frames, instruction=None) -> np.ndarray:
     del instruction
     last = _last_frames(frames)
-    goal = frames_to_model(self.goal)
+    goal = to_model(self.goal)
     if tuple(goal.shape) != tuple(last.shape[1:]):
       raise ValueError(f"goal image must be {tuple(last.shape[1:])}, got {tuple(goal.shape)}")
     return -np.asarray(jnp.mean((last - goal) ** 2, axis=(1, 2, 3)), np.float32)
@@ -88,7 +88,7 @@ class SuccessClassifier:
 
   def probabilities(self, frames) -> np.ndarray:
     """Success probability of single frames ``[N, H, W, 3]``."""
-    frames = frames_to_model(frames)
+    frames = to_model(frames)
     if tuple(frames.shape[1:]) != tuple(self.frame_shape):
       raise ValueError(f"the classifier takes {self.frame_shape} frames, got "
                        f"{tuple(frames.shape[1:])}")
@@ -141,7 +141,7 @@ def train_success_classifier(frames, labels, *, steps: int = 500, batch_size: in
   weights = np.where(labels > 0, 0.5 / positive, 0.5 / (1 - positive)).astype(np.float32)
   module = SuccessCNN(tuple(widths))
   rng = np.random.default_rng(seed)
-  params = module.init(jax.random.key(seed), frames_to_model(frames[:1]))
+  params = module.init(jax.random.key(seed), to_model(frames[:1]))
   optimizer = optax.adamw(learning_rate)
   opt_state = optimizer.init(params)
 
@@ -157,7 +157,7 @@ def train_success_classifier(frames, labels, *, steps: int = 500, batch_size: in
 
   for _ in range(steps):
     index = rng.integers(0, len(frames), min(batch_size, len(frames)))
-    params, opt_state, loss, accuracy = step(params, opt_state, frames_to_model(frames[index]),
+    params, opt_state, loss, accuracy = step(params, opt_state, to_model(frames[index]),
                                              labels[index], weights[index])
   classifier = SuccessClassifier(params, tuple(widths), tuple(frames.shape[1:]), label)
   return classifier, {"loss": float(loss), "accuracy": float(accuracy)}

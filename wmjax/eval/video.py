@@ -14,7 +14,7 @@ import numpy as np
 from PIL import Image
 
 from wmjax.data.videoio import read_video  # noqa: F401 (part of this module's interface)
-from wmjax.eval.metrics import to_uint8
+from wmjax.frames import to_uint8
 
 VIDEO_FORMATS = (".mp4", ".gif")
 

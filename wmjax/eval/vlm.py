@@ -37,7 +37,7 @@ from typing import Any, Sequence
 import numpy as np
 from PIL import Image
 
-from wmjax.eval.metrics import to_uint8
+from wmjax.frames import to_uint8
 
 logger = logging.getLogger(__name__)
 

@@ -28,8 +28,9 @@ import ml_collections
 
 from wmjax import parallel
 from wmjax.nn import attention, forward_flops
-from wmjax.rollout import WorldModel, block_flops, rollout
-from wmjax.train.errors import RunError
+from wmjax.model import WorldModel
+from wmjax.rollout import block_flops, rollout
+from wmjax.errors import RunError
 from wmjax.train.step import ShardedTrainer
 
 GIB = 1024 ** 3

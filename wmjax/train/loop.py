@@ -46,10 +46,12 @@ from wmjax.data.pipeline import training_pipeline
 from wmjax.diffusion import diffusion_loss
 from wmjax.eval.protocols import frame_metrics
 from wmjax.eval.video import comparison, stack_rows, write_video
-from wmjax.rollout import WorldModel, rollout
+from wmjax.model import WorldModel
+from wmjax.rollout import rollout
 from wmjax.train import fit, memory
-from wmjax.train.checkpoint import CheckpointError, Checkpointer, shapes_by_path
-from wmjax.train.errors import RunError
+from wmjax.errors import CheckpointError
+from wmjax.train.checkpoint import Checkpointer, shapes_by_path
+from wmjax.errors import RunError
 from wmjax.train.data import build_data, eval_windows
 from wmjax.train.resume import check_resume
 from wmjax.train.step import ShardedTrainer

@@ -37,7 +37,7 @@ def _per_token_bytes(hidden: int, dtype_bytes: int, remat: str, heads: int,
 
 def estimate(config: ml_collections.ConfigDict, num_devices: int | None = None) -> dict:
   """Bytes per device of the train state, gradients and activations of ``config``."""
-  from wmjax.rollout import WorldModel
+  from wmjax.model import WorldModel
   world_model = WorldModel.from_config(config)
   net = world_model.network
   frames = config.data.frames if "data" in config else net.num_frames

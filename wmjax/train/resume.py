@@ -18,7 +18,7 @@ from typing import Any, Sequence
 
 import ml_collections
 
-from wmjax.train.errors import RunError
+from wmjax.errors import RunError
 
 SAFE_ON_RESUME = ("train.num_steps", "train.log_every", "train.eval_every",
                   "train.checkpoint_every", "train.max_checkpoints", "train.eval_windows",

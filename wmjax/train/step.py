@@ -20,8 +20,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from wmjax import parallel
 from wmjax.diffusion import masked_loss_sum, training_noise
-from wmjax.rollout import WorldModel
-from wmjax.train.checkpoint import abstract_with_shardings
+from wmjax.model import WorldModel
+from wmjax.parallel import abstract_with_shardings
 from wmjax.train.state import (TrainState, create_train_state, ema_update, learning_rate_schedule,
                                make_optimizer)
 

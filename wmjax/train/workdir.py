@@ -17,7 +17,7 @@ import os
 import socket
 import time
 
-from wmjax.train.errors import RunError
+from wmjax.errors import RunError
 
 LOCK_NAME = "train.lock"
 METRICS_LOG = "metrics.jsonl"

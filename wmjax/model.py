@@ -1,0 +1,198 @@
+"""The world model for inference: :class:`WorldModel` (network, diffusion process and sampler)
+and :func:`load_model`, which reads what inference needs from a training checkpoint (parameters,
+config, action statistics, codec) into a :class:`LoadedModel`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Any, Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import ml_collections
+import orbax.checkpoint as ocp
+
+from wmjax.codecs import Codec, make_codec
+from wmjax.config import apply_overrides, model_config, sampling_config
+from wmjax.data.stats import ActionStats
+from wmjax.diffusion import objectives
+from wmjax.diffusion.sampling import (DenoiseFn, SamplerConfig, classifier_free_guidance,
+                                      context_inputs, window_denoiser)
+from wmjax.errors import CheckpointError, describe_error, ignore_closed_loop_callbacks
+from wmjax.nn.dit import STDiT
+from wmjax.parallel import abstract_with_shardings, local_data_mesh
+
+Params = Any
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class WorldModel:
+  """The network, its diffusion process and how it is sampled; hashable by identity (jit-static)."""
+
+  network: STDiT
+  process: objectives.Process
+  sampler: SamplerConfig
+
+  def __post_init__(self):
+    if self.sampler.kv_cache and not self.network.causal_temporal:
+      raise ValueError("sampling.kv_cache=True needs model.causal_temporal=True: with "
+                       "bidirectional temporal attention the context frames attend to the new "
+                       "frames, so their keys and values change at every sampling step")
+
+  @classmethod
+  def from_config(cls, config: ml_collections.ConfigDict) -> "WorldModel":
+    """From a config with ``model`` (STDiT fields), ``diffusion`` and ``sampling`` sections."""
+    d = config.diffusion
+    process = objectives.make_process(d.kind, d.get("schedule", "linear"), d.num_timesteps,
+                                      d.get("prediction", "eps"))
+    sampler = SamplerConfig(**config.sampling.to_dict())
+    if sampler.sampler not in process.samplers:
+      raise ValueError(f"sampling.sampler={sampler.sampler!r} does not fit diffusion.kind="
+                       f"{d.kind!r}; expected one of {process.samplers}")
+    return cls(STDiT(**config.model.to_dict()), process, sampler)
+
+  def init(self, rng: jax.Array, frame_shape: tuple[int, int, int], frames: int | None = None
+           ) -> Params:
+    """Initial variables for frames of ``frame_shape = (H, W, C)``."""
+    n = frames or self.network.num_frames
+    x = jnp.zeros((1, n) + tuple(frame_shape), jnp.float32)
+    actions = jnp.zeros((1, n - 1, self.network.action_dim), jnp.float32)
+    return self.network.init(rng, x, jnp.zeros((1, n), jnp.float32), actions)
+
+  # Classifier-free guidance runs the network on the batch twice, conditional then null.
+
+  @property
+  def guided(self) -> bool:
+    return self.sampler.guidance_scale != 1.0
+
+  def _twice(self, x: jax.Array) -> jax.Array:
+    return jnp.concatenate([x, x], axis=0) if self.guided else x
+
+  def _conditioning(self, actions: jax.Array, action_mask: jax.Array):
+    """``(actions, action_mask, drop_actions)`` of the network's batch."""
+    if not self.guided:
+      return actions, action_mask, None
+    b = actions.shape[0]
+    drop = jnp.concatenate([jnp.zeros((b,), bool), jnp.ones((b,), bool)])
+    return self._twice(actions), self._twice(action_mask), drop
+
+  def _guide(self, out: jax.Array) -> jax.Array:
+    if not self.guided:
+      return out
+    b = out.shape[0] // 2
+    return classifier_free_guidance(out[:b], out[b:], self.sampler.guidance_scale)
+
+  def denoise(self, params: Params, x: jax.Array, levels: jax.Array, actions: jax.Array,
+              action_mask: jax.Array) -> jax.Array:
+    """Network output for the window ``x [B, T, ...]`` at process levels ``[B, T]``, with guidance."""
+    t = self.process.model_time(levels)
+    out = self.network.apply(params, self._twice(x), self._twice(t),
+                             *self._conditioning(actions, action_mask))
+    return self._guide(out)
+
+  def new_frame_denoiser(self, params: Params, context: jax.Array, actions: jax.Array,
+                         action_mask: jax.Array) -> DenoiseFn:
+    """What the sampler calls at every step: ``(x [B, h, ...], levels [B, h]) -> out`` for the
+    ``h`` frames after the clean ``context [B, c, ...]``, under the window's ``actions
+    [B, c+h-1, A]`` and ``action_mask [B, c+h-1]``. With ``sampler.kv_cache`` the context goes
+    through the network once, here; otherwise every step runs the whole window."""
+    context_in, context_levels = context_inputs(self.process, self.sampler, context)
+    if not self.sampler.kv_cache:
+      return window_denoiser(lambda x, levels: self.denoise(params, x, levels, actions, action_mask),
+                             context_in, context_levels)
+    conditioning = self._conditioning(actions, action_mask)
+    cache = self.network.apply(params, self._twice(context_in),
+                               self._twice(self.process.model_time(context_levels)), *conditioning,
+                               method="encode_context")
+
+    def denoise(x, levels):
+      out = self.network.apply(params, cache, self._twice(x),
+                               self._twice(self.process.model_time(levels)), *conditioning,
+                               method="extend")
+      return self._guide(out)
+
+    return denoise
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadedModel:
+  """A trained world model ready for rollouts, read from a training workdir."""
+
+  config: ml_collections.ConfigDict
+  world_model: WorldModel
+  params: Any  # EMA or raw parameters, replicated over the local devices
+  action_stats: ActionStats
+  step: int
+  codec: Codec  # RGB frames <-> the model's space (config.codec)
+
+  @property
+  def frame_shape(self) -> tuple[int, int, int]:
+    """The model's frames (latents for a VAE codec)."""
+    return tuple(self.config.frame_shape)
+
+  @property
+  def image_shape(self) -> tuple[int, int, int]:
+    """The RGB frames the codec takes."""
+    return self.codec.image_shape(self.frame_shape)
+
+
+def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
+               overrides: Sequence[str] = (), param_dtype: str = "float32") -> LoadedModel:
+  """The parameters (``params='ema'`` or ``'raw'``), config and action statistics of a training
+  checkpoint in ``workdir`` (the latest, or ``step``); nothing else of the train state is read.
+  ``overrides`` (``dotted.key=value``) change inference settings such as ``sampling.num_steps``
+  or ``model.dtype``; ``param_dtype='bfloat16'`` halves the parameters' memory for inference."""
+  if params not in ("ema", "raw"):
+    raise ValueError(f"params must be 'ema' or 'raw', got {params!r}")
+  directory = os.path.join(os.path.abspath(os.path.expanduser(workdir)), "checkpoints")
+  if not os.path.isdir(directory):
+    raise FileNotFoundError(f"{workdir} holds no checkpoints/ directory; train a model there "
+                            f"first (wmjax train --workdir {workdir})")
+  ignore_closed_loop_callbacks()
+  manager = ocp.CheckpointManager(directory, options=ocp.CheckpointManagerOptions(create=False))
+  try:
+    steps = sorted(manager.all_steps())
+    if not steps:
+      raise FileNotFoundError(f"{directory} holds no complete checkpoint")
+    if step is None:
+      step = steps[-1]
+    elif step not in steps:
+      raise ValueError(f"no checkpoint for step {step} in {directory}; steps: {steps}")
+
+    def read(item, args):
+      try:
+        return manager.restore(step, args=ocp.args.Composite(**args))
+      except Exception as e:
+        others = [s for s in steps if s != step]
+        hint = (f"; the other checkpoints are steps {others}: pass --step {others[-1]} (or "
+                f"step={others[-1]}) to use one" if others else "")
+        raise CheckpointError(f"checkpoint {step} cannot be read: "
+                              f"{os.path.join(directory, str(step), item)}: "
+                              f"{describe_error(e)}{hint}") from e
+
+    config = ml_collections.ConfigDict(read("config", dict(config=ocp.args.JsonRestore())).config)
+    stats = read("action_stats", dict(action_stats=ocp.args.JsonRestore())).action_stats
+    # A checkpoint written before a model or sampling field existed gets its default, which an
+    # override may then change (e.g. sampling.kv_cache).
+    config.model = model_config(**config.model.to_dict())
+    config.sampling = sampling_config(**config.sampling.to_dict())
+    config = apply_overrides(config, overrides)
+    world_model = WorldModel.from_config(config)
+    frame_shape = tuple(config.frame_shape)
+    abstract = nn.unbox(jax.eval_shape(
+        lambda: world_model.init(jax.random.key(0), frame_shape, config.data.frames)))
+    replicated = jax.sharding.NamedSharding(local_data_mesh(), jax.sharding.PartitionSpec())
+    key = "ema_params" if params == "ema" else "params"
+    target = {key: abstract_with_shardings(abstract, jax.tree.map(lambda _: replicated, abstract))}
+    restored = read("state", dict(state=ocp.args.PyTreeRestore(
+        target, partial_restore=True,
+        restore_args=ocp.checkpoint_utils.construct_restore_args(target))))
+  finally:
+    manager.close()
+  weights = jax.tree.map(lambda p: p.astype(param_dtype), restored.state[key])
+  return LoadedModel(config, world_model, weights,
+                     ActionStats.from_dict(stats), int(step),
+                     make_codec(config.get("codec")))
