@@ -33,10 +33,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmjax.nn import attention, layers
+from wmjax.nn import attention, layers, text_actions
 from wmjax.nn.layers import logical
 
 COND_MODES = ("frame", "video", "per_frame")
+# How an action reaches its embedding: "raw" numbers (ActionEmbedder), or "text", written as digit
+# tokens and read by a small Transformer (wmjax.nn.text_actions; frame / per_frame cond only).
+ACTION_ENCODINGS = ("raw", "text")
 # What a rematerialised layer keeps from its forward pass for the backward pass.
 REMAT_POLICIES = {
     "none": None,  # no remat: keep every activation (fastest, most memory)
@@ -110,6 +113,7 @@ class STDiT(nn.Module):
   action_dim: int = 7
   cond: str = "frame"
   action_embed_ratio: int = 4  # 0: linear action embedding (WPE); r: MLP with hidden r*D (IRASim)
+  action_encoding: str = "raw"  # a key of ACTION_ENCODINGS
   trajectory_in_temporal: bool = False
   action_dropout: float = 0.1
   causal_temporal: bool = False
@@ -127,6 +131,12 @@ class STDiT(nn.Module):
     for field in ("temporal_pos", "spatial_pos"):
       if getattr(self, field) not in POSITIONS:
         raise ValueError(f"{field} must be one of {POSITIONS}, got {getattr(self, field)!r}")
+    if self.action_encoding not in ACTION_ENCODINGS:
+      raise ValueError(f"action_encoding must be one of {ACTION_ENCODINGS}, got "
+                       f"{self.action_encoding!r}")
+    if self.action_encoding == "text" and self.cond not in ("frame", "per_frame"):
+      raise ValueError(f"action_encoding='text' embeds one action per frame, so cond must be "
+                       f"'frame' or 'per_frame', got {self.cond!r}")
     if self.remat not in REMAT_POLICIES:
       raise ValueError(f"remat must be one of {sorted(REMAT_POLICIES)}, got {self.remat!r}")
     if self.depth % 2:
@@ -139,7 +149,9 @@ class STDiT(nn.Module):
     self.patch_embed = layers.PatchEmbed(self.patch_size, d, dtype=dtype)
     self.time_embed = layers.TimestepEmbedder(d, dtype=dtype)
     if self.cond in ("frame", "per_frame"):
-      self.action_embed = layers.ActionEmbedder(d, self.action_embed_ratio, dtype=dtype)
+      self.action_embed = (
+          text_actions.TextActionEmbedder(d, dtype=dtype) if self.action_encoding == "text" else
+          layers.ActionEmbedder(d, self.action_embed_ratio, dtype=dtype))
     if self.uses_trajectory:
       self.trajectory_embed = layers.ActionEmbedder(d, self.action_embed_ratio, dtype=dtype)
     self.null_action = self.param("null_action", logical(nn.initializers.normal(0.02), "embed"),
