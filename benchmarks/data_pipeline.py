@@ -15,9 +15,9 @@ import os
 import tempfile
 import time
 
-from wmjax.data import gridworld
 from wmjax.data.pipeline import WindowSource, training_pipeline
 from wmjax.data.sources import ArrayRecordEpisodes, action_stats
+from wmjax.tasks.gridworld import dataset as gridworld
 
 CASES = {"64x64": (128, (64, 64)), "256x320": (256, (256, 320))}
 

@@ -14,7 +14,7 @@ import ml_collections
 
 from wmjax.codecs import codec_config
 from wmjax.config import model_config, optim_config, sampling_config
-from wmjax.data.gridworld import GridworldConfig
+from wmjax.tasks.gridworld.dataset import GridworldConfig
 
 
 def get_config() -> ml_collections.ConfigDict:

@@ -13,7 +13,7 @@ import ml_collections
 
 from wmjax.codecs import codec_config
 from wmjax.config import model_config, optim_config, sampling_config
-from wmjax.data.pusht import PushTConfig
+from wmjax.tasks.pusht.dataset import PushTConfig
 
 
 def get_config() -> ml_collections.ConfigDict:

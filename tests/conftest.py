@@ -14,8 +14,8 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 from wmjax.config import load_config  # noqa: E402
-from wmjax.data import gridworld  # noqa: E402
 from wmjax.model import WorldModel  # noqa: E402
+from wmjax.tasks.gridworld import dataset as gridworld  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -10,7 +10,7 @@ import pytest
 import tensorflow_datasets as tfds
 
 import oxe_fixtures
-from wmjax.data import gridworld, oxe
+from wmjax.data import oxe
 from wmjax.data.convert import convert_to_array_record
 from wmjax.data.pipeline import WindowSource, training_pipeline
 from wmjax.data.rlds import episode_windows
@@ -18,6 +18,7 @@ from wmjax.data.sources import (ArrayRecordEpisodes, action_stats, stats_filenam
                                  tfrecord_episodes)
 from wmjax.data.stats import ActionStats
 from wmjax.parallel import global_batch
+from wmjax.tasks.gridworld import dataset as gridworld
 
 FRAMES, STRIDE = 4, 2
 

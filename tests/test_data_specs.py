@@ -15,7 +15,7 @@ import pytest
 from PIL import Image
 
 import oxe_fixtures
-from wmjax.data import gridworld, oxe
+from wmjax.data import oxe
 from wmjax.data.convert import convert_to_array_record
 from wmjax.data.lerobot import import_lerobot
 from wmjax.data.pipeline import WindowSource
@@ -24,6 +24,7 @@ from wmjax.data.sources import (ArrayRecordEpisodes, action_stats, read_episodes
                                 tfrecord_episodes)
 from wmjax.data.videoio import read_video
 from wmjax.eval.video import write_video
+from wmjax.tasks.gridworld import dataset as gridworld
 
 
 def _cli(*args):

@@ -16,11 +16,14 @@ from conftest import ROOT, tiny_world_model
 from wmjax import cli
 from wmjax.codecs import PixelCodec
 from wmjax.config import load_config
-from wmjax.data import gridworld
 from wmjax.data.stats import ActionStats
 from wmjax.eval import inputs, protocols, video
-from wmjax.rollout import rollout
+from wmjax.eval.frechet import FrechetDistances
+from wmjax.eval.rollouts import run_rollouts
+from wmjax.eval.trajectories import Trajectories
 from wmjax.model import LoadedModel, load_model
+from wmjax.rollout import rollout
+from wmjax.tasks.gridworld import dataset as gridworld
 from wmjax.train.loop import train
 
 # ----------------------------------------------------------------------------- video files
@@ -109,10 +112,10 @@ def test_run_rollouts_scores_only_real_frames():
   windows = [{"frames": rng.integers(0, 256, (n, 16, 16, 3), np.uint8),
               "actions": rng.normal(size=(n - 1, 7)).astype(np.float32), "episode": i,
               "start": 0, "instruction": b""} for i, n in enumerate((7, 4, 6))]
-  trajectories = protocols.Trajectories.stack(windows, lambda a: a)
+  trajectories = Trajectories.stack(windows, lambda a: a)
   assert trajectories.frames.shape == (3, 7, 16, 16, 3) and list(trajectories.lengths) == [7, 4, 6]
-  outcome = protocols.run_rollouts(_loaded(wm, params), trajectories, first=0, context=1,
-                                   horizon=3, rng=jax.random.key(0), batch_size=2, keep_videos=3)
+  outcome = run_rollouts(_loaded(wm, params), trajectories, first=0, context=1,
+                         horizon=3, rng=jax.random.key(0), batch_size=2, keep_videos=3)
   mse = outcome.model["mse"]
   assert mse.shape == (3, 6)
   assert np.isfinite(mse[0]).all() and np.isnan(mse[1, 3:]).all() and np.isfinite(mse[1, :3]).all()
@@ -146,11 +149,11 @@ def colour_trajectory_features(clips):
 def test_frechet_distances_from_user_feature_networks():
   rng = np.random.default_rng(0)
   clips = rng.integers(0, 256, (12, 4, 8, 8, 3), np.uint8)
-  same = protocols.FrechetDistances(mean_colour_features, colour_trajectory_features)
+  same = FrechetDistances(mean_colour_features, colour_trajectory_features)
   same.update(clips[:6], clips[:6])
   same.update(clips[6:], clips[6:])
   assert max(abs(v) for v in same.result().values()) < 1e-6
-  brighter = protocols.FrechetDistances(mean_colour_features, None)
+  brighter = FrechetDistances(mean_colour_features, None)
   brighter.update(clips, np.clip(clips.astype(int) + 40, 0, 255).astype(np.uint8))
   result = brighter.result()
   assert set(result) == {"fid"} and result["fid"] > 0.01

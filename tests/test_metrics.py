@@ -7,8 +7,9 @@ import pytest
 import scipy.linalg
 from skimage import metrics as skm
 
-from wmjax.data import gridworld
 from wmjax.eval import metrics
+from wmjax.tasks.gridworld import dataset as gridworld
+from wmjax.tasks.gridworld import metrics as gridworld_metrics
 
 
 def _pair(shape, seed=0, noise=40):
@@ -131,14 +132,14 @@ def test_square_positions_are_recovered_from_rendered_frames():
   config = gridworld.GridworldConfig(num_squares=3, image_size=32, square_size=4)
   centres = np.array([[4.0, 6.0], [20.0, 10.0], [12.0, 28.0]], np.float32)
   frame = gridworld.render(centres, config)
-  found_centres, found = metrics.color_centroids(frame, gridworld.COLORS[:3])
+  found_centres, found = gridworld_metrics.color_centroids(frame, gridworld.COLORS[:3])
   assert found.all()
   np.testing.assert_allclose(found_centres, centres, atol=1e-6)
-  error, _ = metrics.square_position_error(frame[None], centres[None] + [3.0, 4.0],
+  error, _ = gridworld_metrics.square_position_error(frame[None], centres[None] + [3.0, 4.0],
                                            gridworld.COLORS[:3], missing_penalty=16.0)
   np.testing.assert_allclose(error, 5.0, atol=1e-6)
   empty = np.zeros_like(frame)
-  error, found = metrics.square_position_error(empty, centres, gridworld.COLORS[:3], 16.0)
+  error, found = gridworld_metrics.square_position_error(empty, centres, gridworld.COLORS[:3], 16.0)
   assert not found.any() and (error == 16.0).all()
 
 
@@ -146,23 +147,23 @@ def test_square_iou_on_hand_made_frames():
   config = gridworld.GridworldConfig(num_squares=2, image_size=16, square_size=4)
   colors = gridworld.COLORS[:2]
   truth = gridworld.render(np.array([[4.0, 4.0], [11.0, 11.0]], np.float32), config)
-  iou, one = metrics.square_iou(truth, truth, colors)
+  iou, one = gridworld_metrics.square_iou(truth, truth, colors)
   np.testing.assert_array_equal(iou, [1.0, 1.0])
   assert one.all()
   # square 0 shifted by one pixel: 12 of 16 pixels shared, union 20
   shifted = gridworld.render(np.array([[4.0, 5.0], [11.0, 11.0]], np.float32), config)
-  iou, one = metrics.square_iou(shifted, truth, colors)
+  iou, one = gridworld_metrics.square_iou(shifted, truth, colors)
   np.testing.assert_allclose(iou, [12 / 20, 1.0])
   assert one.all()
   # square 1 fragmented: its centroid stays, every other pixel of it goes black
   fragmented = truth.copy()
   fragmented[9:13, 9:13][np.indices((4, 4)).sum(0) % 2 == 1] = 0
-  iou, one = metrics.square_iou(fragmented, truth, colors)
+  iou, one = gridworld_metrics.square_iou(fragmented, truth, colors)
   np.testing.assert_allclose(iou, [1.0, 0.5])
   np.testing.assert_array_equal(one, [True, False])
   # square 0 missing; a leading batch axis is kept
   missing = truth.copy()
   missing[2:6, 2:6] = 0
-  iou, one = metrics.square_iou(np.stack([missing, truth]), np.stack([truth, truth]), colors)
+  iou, one = gridworld_metrics.square_iou(np.stack([missing, truth]), np.stack([truth, truth]), colors)
   np.testing.assert_allclose(iou, [[0.0, 1.0], [1.0, 1.0]])
   np.testing.assert_array_equal(one, [[False, True], [True, True]])

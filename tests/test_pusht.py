@@ -9,12 +9,14 @@ import pytest
 from PIL import Image
 
 from conftest import ROOT
-from wmjax import cli, pusht
+from wmjax import cli
 from wmjax.config import load_config
-from wmjax.data import pusht as pusht_data
 from wmjax.data.sources import ArrayRecordEpisodes
-from wmjax.frames import to_model
 from wmjax.eval import rewards
+from wmjax.frames import to_model
+from wmjax.tasks.pusht import dataset as pusht_data
+from wmjax.tasks.pusht import simulator as pusht
+from wmjax.tasks.pusht.rewards import coverage
 from wmjax.train.loop import train
 
 
@@ -80,7 +82,7 @@ def test_reward_functions():
                      pusht.reset_state((60, 60), (150, 380), 0.3)])
   frames, _ = _render(states)
   videos = np.stack([frames, frames[::-1]])  # [2 rollouts, 2 frames]
-  np.testing.assert_allclose(rewards.pusht_coverage(videos), pusht.frame_coverage(
+  np.testing.assert_allclose(coverage(videos), pusht.frame_coverage(
       to_model(frames[::-1])), rtol=1e-6)
   distance = rewards.GoalImageDistance(frames[0])(videos)
   assert distance[1] == 0.0 and distance[0] < -0.01

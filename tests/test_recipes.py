@@ -17,8 +17,8 @@ from wmjax.data.latents import LatentEpisodes
 from wmjax.data.rlds import make_window
 from wmjax.data.sources import ArrayRecordEpisodes
 from wmjax.env import WorldModelEnv
+from wmjax.eval.evaluate import evaluate_checkpoint
 from wmjax.frames import to_model
-from wmjax.eval.protocols import evaluate_checkpoint
 from wmjax.model import load_model
 from wmjax.train.loop import train
 

@@ -21,12 +21,12 @@ from jax.experimental.compilation_cache import compilation_cache
 from conftest import tiny_config
 from wmjax import cli, parallel
 from wmjax.config import ConfigError, load_config
-from wmjax.data import gridworld
 from wmjax.data.pipeline import WindowSource, training_pipeline
 from wmjax.data.sources import ArrayRecordEpisodes, action_stats
 from wmjax.errors import CheckpointError
 from wmjax.eval import inputs
 from wmjax.model import WorldModel, load_model
+from wmjax.tasks.gridworld import dataset as gridworld
 from wmjax.train.checkpoint import Checkpointer
 from wmjax.train.loop import NonFiniteLossError, train
 from wmjax.train.resume import ConfigChangeError, check_resume

@@ -107,7 +107,7 @@ def cmd_evaluate(args, extra) -> int:
   """Evaluate a checkpoint on a held-out split: IRASim short / long trajectories and the WPE
   context-horizon sweep, model against the copy-last-frame baseline. Writes metrics.json,
   report.md and per-trajectory videos (ground truth | prediction | difference)."""
-  from wmjax.eval.protocols import evaluate_checkpoint
+  from wmjax.eval.evaluate import evaluate_checkpoint
   out, results = evaluate_checkpoint(
       args.workdir, split=args.split, out=args.out, protocols=args.protocols.split(","),
       step=args.step, params=args.params, batch_size=args.batch_size,
@@ -127,12 +127,12 @@ def cmd_rollout(args, extra) -> int:
   frames.npy (uint8 [B, c+N, H, W, 3])."""
   import os
 
-  from wmjax.frames import to_model
   from wmjax.eval import inputs
   from wmjax.eval import video as video_lib
+  from wmjax.frames import to_model
   from wmjax.frames import to_uint8
-  from wmjax.rollout import rollout
   from wmjax.model import load_model
+  from wmjax.rollout import rollout
 
   model = load_model(args.workdir, step=args.step, params=args.params,
                      overrides=_overrides(extra), param_dtype=args.param_dtype)
@@ -191,9 +191,9 @@ def cmd_eval_policy(args, extra) -> int:
   from the same initial states: Monte Carlo values (mean ± stderr), Pearson / Spearman / Kendall,
   rank agreement, MMRV, value gap; writes policy_eval.json, policy_eval.md and one video per
   policy (simulator | world model | difference)."""
-  from wmjax import pusht
-  from wmjax.eval.pusht_eval import evaluate_policies, policy_report
   from wmjax.eval.rewards import reward_from_spec
+  from wmjax.tasks.pusht import simulator as pusht
+  from wmjax.tasks.pusht.evaluate import evaluate_policies, policy_report
   model = _load_for_simulator(args, extra)
   chunk = model.config.rollout.horizon
   specs = args.policy or ["push", "push:0.1", "push:0.2", "push:0.5", "stay"]
@@ -211,10 +211,10 @@ def cmd_plan(args, extra) -> int:
   """Model-predictive control by ranking in the simulator (gym-pusht): at each replanning, K
   chunks from the proposal policy are imagined in one batch, scored by the value function, and
   the best one's first actions are executed; final simulator coverage for each K."""
-  from wmjax import pusht
   from wmjax.eval.planning import policy_proposal
-  from wmjax.eval.pusht_eval import plan_in_simulator
   from wmjax.eval.rewards import reward_from_spec
+  from wmjax.tasks.pusht import simulator as pusht
+  from wmjax.tasks.pusht.evaluate import plan_in_simulator
   model = _load_for_simulator(args, extra)
   length = args.plan_length or model.config.rollout.horizon
   proposal = policy_proposal(pusht.policy_from_spec(args.proposal, length))
@@ -245,8 +245,8 @@ def cmd_launch(args, extra) -> int:
 def cmd_info(args, extra) -> int:
   """Parameter count, forward FLOPs, sampling cost and a per-device training-memory estimate of a
   config, without allocating the model."""
-  from wmjax.nn import forward_flops
   from wmjax.model import WorldModel
+  from wmjax.nn import forward_flops
   from wmjax.rollout import block_flops
 
   config = _config_from_args(args, extra)
@@ -376,10 +376,8 @@ def cmd_data_encode(args, extra) -> int:
 
   from wmjax.codecs import make_codec
   from wmjax.data.latents import codec_description, encode_dataset
-  from wmjax.data.oxe import specs_from_config
-  from wmjax.data.sources import ArrayRecordEpisodes, action_stats, dataset_dir
+  from wmjax.data.sources import member_configs, open_dataset
   from wmjax.frames import to_model
-  from wmjax.train.data import member_configs
 
   config = _config_from_args(args, extra)
   members = {m.dataset: m for m in member_configs(config.data)}
@@ -391,15 +389,13 @@ def cmd_data_encode(args, extra) -> int:
                      f"({sorted(members)})")
   data = members[args.dataset] if args.dataset else next(iter(members.values()))
   codec = make_codec(config.get("codec"))
-  builder_dir = dataset_dir(data)
+  dataset = open_dataset(data)
   splits = args.splits.split(",") if args.splits else [data.get("train_split", "train"),
                                                        data.get("eval_split", "test")]
-  specs = specs_from_config(data)
-  spec = ArrayRecordEpisodes(builder_dir, splits[0], specs).spec
-  resolution = tuple(data.get("resolution") or spec.resolution)
-  stats = action_stats(builder_dir, data.get("train_split", "train"), specs)
+  resolution = dataset.resolution(dataset.split(splits[0]).spec)
+  stats = dataset.train_stats()
   keys = (jax.random.fold_in(jax.random.key(args.seed), i) for i in itertools.count())
-  out = encode_dataset(builder_dir, args.out, splits, specs, resolution,
+  out = encode_dataset(dataset.builder_dir, args.out, splits, dataset.specs, resolution,
                        lambda frames: np.asarray(codec.encode(to_model(frames), next(keys))),
                        codec_description(config.get("codec")), stats.to_dict())
   print(out)
@@ -418,6 +414,7 @@ def _bool(text: str) -> bool:
 
 
 def _add_data_commands(sub) -> None:
+  from wmjax import tasks  # noqa: F401  (importing it registers the generated datasets)
   from wmjax.data.sources import GENERATED
   data = sub.add_parser("data", help="prepare, convert and summarise datasets")
   data_sub = data.add_subparsers(dest="data_command", required=True)

@@ -20,10 +20,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmjax.data import gridworld
 from wmjax.diffusion import GaussianDiffusion
 from wmjax.eval import metrics
 from wmjax.model import load_model
+from wmjax.tasks.gridworld import dataset as gridworld
+from wmjax.tasks.gridworld import metrics as gridworld_metrics
 from wmjax.train.data import build_data, eval_windows
 
 
@@ -56,7 +57,7 @@ def denoising_errors(workdir: str, windows: int = 64, fractions=(0.0, 0.1, 0.25,
     x0, _ = process.to_x0_eps(noisy, levels, out)
     x0 = jnp.clip(x0[:, c:], -1.0, 1.0)
     truth = frames[:, c:]
-    iou, _ = metrics.square_iou(np.asarray(x0), np.asarray(truth), colors)
+    iou, _ = gridworld_metrics.square_iou(np.asarray(x0), np.asarray(truth), colors)
     rows.append({"fraction": fraction, "level": float(level),
                  "x0_mse": float(jnp.mean((x0 - truth) ** 2)),
                  "square_iou": float(iou.mean())})

@@ -14,18 +14,19 @@ beside the data, or under ``~/.cache/wmjax`` when the data directory is not writ
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
 import os
 import re
-from typing import Any, Iterator, Mapping, Sequence, Union
+from typing import Any, Callable, Iterator, Mapping, Sequence, Union
 
 import ml_collections
 import numpy as np
 import tensorflow_datasets as tfds
 
-from wmjax.data import gridworld, oxe, pusht
+from wmjax.data import oxe
 from wmjax.data.rlds import Episode, skip_image_decoding, stack_steps
 from wmjax.data.stats import ActionStats
 
@@ -256,15 +257,22 @@ def action_stats(builder_dir: str, split: str = "train", spec: SpecArg = None,
   return stats
 
 
-# Datasets wmjax generates itself: name -> (parameter dataclass, prepare(data_dir, params)).
-GENERATED = {"gridworld": (gridworld.GridworldConfig, gridworld.prepare),
-             "pusht": (pusht.PushTConfig, pusht.prepare)}
+# Datasets wmjax generates itself (the tasks' simulators register theirs, see wmjax.tasks):
+# name -> (parameter dataclass, prepare(data_dir, params) -> builder directory).
+GENERATED: dict[str, tuple[type, Callable[[str, Any], str]]] = {}
+
+
+def register_generated(name: str, params_class: type, prepare: Callable[[str, Any], str]) -> None:
+  """Make ``config.data.dataset = name`` generate its data with ``prepare`` in ``data_dir``, with
+  the parameters ``params_class.from_dict(config.data.<name>)``."""
+  GENERATED[name] = (params_class, prepare)
 
 
 def dataset_dir(data: ml_collections.ConfigDict) -> str:
   """The ArrayRecord builder directory of a data config (``config.data`` or a mixture member):
-  ``builder_dir``, or for a generated dataset (gridworld, Push-T) ``data_dir``, where it is
-  generated if missing with the parameters in ``config.data.<dataset>``."""
+  ``builder_dir``, or for a generated dataset (:data:`GENERATED`: gridworld, Push-T once
+  :mod:`wmjax.tasks` is imported) ``data_dir``, where it is generated if missing with the
+  parameters in ``config.data.<dataset>``."""
   if data.dataset in GENERATED:
     params_class, prepare = GENERATED[data.dataset]
     params = params_class.from_dict(data.get(data.dataset, {}))
@@ -274,3 +282,48 @@ def dataset_dir(data: ml_collections.ConfigDict) -> str:
     raise ValueError(f"config.data.builder_dir must point at the ArrayRecord builder directory "
                      f"of {data.dataset} (see `wmjax data convert`)")
   return os.path.expanduser(data.builder_dir)
+
+
+def member_configs(data: ml_collections.ConfigDict) -> list[ml_collections.ConfigDict]:
+  """``config.data`` itself, or one config per ``data.mixture`` entry (a member inherits the rest
+  of ``config.data``)."""
+  mixture = data.get("mixture")
+  if not mixture:
+    return [data]
+  # a dataset's own reading (spec, camera) is not inherited by the others
+  base = {k: v for k, v in data.to_dict().items() if k not in ("mixture", "spec", "image_key")}
+  members = []
+  for name, entry in mixture.items():
+    member = ml_collections.ConfigDict(dict(base, dataset=name, builder_dir="", latents_dir="",
+                                            weight=1.0))
+    member.update(entry.to_dict())
+    members.append(member)
+  return members
+
+
+@dataclasses.dataclass(frozen=True)
+class ConfiguredDataset:
+  """The dataset a data config names (``config.data`` or a mixture member), found (generated if
+  need be): its builder directory and the specs to read it with."""
+
+  data: ml_collections.ConfigDict
+  builder_dir: str
+  specs: Sequence[oxe.DatasetSpec]
+
+  def split(self, name: str) -> ArrayRecordEpisodes:
+    """The episodes of split ``name`` (e.g. ``test`` or ``train[:95%]``)."""
+    return ArrayRecordEpisodes(self.builder_dir, name, self.specs)
+
+  def train_stats(self) -> ActionStats:
+    """The action statistics of the training split (what the model normalises with)."""
+    return action_stats(self.builder_dir, self.data.get("train_split", "train"), self.specs)
+
+  def resolution(self, spec: oxe.DatasetSpec) -> tuple[int, int]:
+    """``(H, W)`` the frames are read at: ``data.resolution``, else the spec's own."""
+    return tuple(self.data.get("resolution") or spec.resolution)
+
+
+def open_dataset(data: ml_collections.ConfigDict) -> ConfiguredDataset:
+  """The dataset of a data config (see :func:`dataset_dir` and
+  :func:`wmjax.data.oxe.specs_from_config`)."""
+  return ConfiguredDataset(data, dataset_dir(data), oxe.specs_from_config(data))

@@ -11,8 +11,8 @@ them in [0, 1]. Callers skip the context frames, which are copies of the ground 
 - :func:`grayscale`: BT.601 luma in uint8 exactly as ``cv2.cvtColor(..., COLOR_RGB2GRAY)``;
   IRASim computes PSNR and SSIM on these.
 - :func:`mse` on [0, 1] pixels, :func:`latent_l2` on raw (latent) values, :func:`masked_mse` over
-  user masks (WPE's arm / object MSE), :func:`square_position_error` and :func:`square_iou` for
-  the gridworld.
+  user masks (WPE's arm / object MSE); :func:`frame_metrics` computes them all per frame, with a
+  task's own (:mod:`wmjax.tasks.registry`).
 - Fréchet distances (FID over frames, FVD over clips) from the features of a feature network:
   :class:`FeatureMoments` accumulates them, :func:`frechet_distance` compares two.
 - :func:`mean_stderr` aggregates.
@@ -22,15 +22,18 @@ from __future__ import annotations
 
 import functools
 import warnings
+from typing import TYPE_CHECKING, Mapping
 
 import dm_pix
 import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
-import scipy.ndimage
 
-from wmjax.frames import to_uint8, to_unit
+from wmjax.frames import to_unit
+
+if TYPE_CHECKING:
+  from wmjax.tasks.registry import FrameMetrics
 
 
 def grayscale(frames) -> jax.Array:
@@ -125,64 +128,37 @@ def ssim(pred, target, window: str = "gaussian") -> jax.Array:
   return _ssim(jnp.asarray(pred), jnp.asarray(target), window)
 
 
-# ----------------------------------------------------------------------------- gridworld
+# ----------------------------------------------------------------------------- per frame
+
+# the generic metrics of frame_metrics -> whether lower is better (for reports)
+LOWER_IS_BETTER = {"mse": True, "psnr": False, "ssim": False, "gray_psnr": False,
+                   "gray_ssim": False, "latent_l2": True, "masked_mse": True}
 
 
-def color_masks(frames, colors: np.ndarray, tolerance: float = 60.0) -> np.ndarray:
-  """Pixels within ``tolerance`` (per channel, 0-255) of each colour: ``frames [..., H, W, 3]``,
-  ``colors [n, 3]`` -> ``[..., H, W, n]`` bool."""
-  pixels = to_uint8(frames).astype(np.float64)
-  return np.abs(pixels[..., None, :] - np.asarray(colors, np.float64)).max(-1) < tolerance
-
-
-def color_centroids(frames, colors: np.ndarray, tolerance: float = 60.0
-                    ) -> tuple[np.ndarray, np.ndarray]:
-  """Centroid (y, x) of the pixels of each colour: ``frames [..., H, W, 3]``, ``colors [n, 3]``
-  -> centroids ``[..., n, 2]`` and found ``[..., n]`` (False where no pixel is that colour)."""
-  mask = color_masks(frames, colors, tolerance)  # [..., H, W, n]
-  h, w = mask.shape[-3:-1]
-  ys, xs = np.mgrid[0:h, 0:w]
-  count = mask.sum((-3, -2))
-  with np.errstate(invalid="ignore", divide="ignore"):
-    cy = (mask * ys[..., None]).sum((-3, -2)) / count
-    cx = (mask * xs[..., None]).sum((-3, -2)) / count
-  # pixel (i, j) covers [i, i+1): its centre is at i + 0.5
-  return np.stack([cy + 0.5, cx + 0.5], -1), count > 0
-
-
-def square_position_error(frames, true_centres: np.ndarray, colors: np.ndarray,
-                          missing_penalty: float) -> tuple[np.ndarray, np.ndarray]:
-  """Distance (pixels) between each square's detected and true centre ``[..., n]``, a square
-  not found in a frame counting ``missing_penalty``; also returns the found mask."""
-  centres, found = color_centroids(frames, colors)
-  error = np.linalg.norm(centres - true_centres, axis=-1)
-  return np.where(found, error, missing_penalty), found
-
-
-def square_iou(pred, truth, colors: np.ndarray, tolerance: float = 60.0
-               ) -> tuple[np.ndarray, np.ndarray]:
-  """Shape agreement of coloured squares: ``pred`` and ``truth`` ``[..., H, W, 3]``, ``colors
-  [n, 3]`` -> (IoU of each colour's predicted and true pixel masks ``[..., n]``, whether the
-  predicted mask is one 4-connected component ``[..., n]``).
-
-  A colour absent from both frames (a square hidden under a later one) has IoU 1; absent from
-  one of them, 0. A centroid can sit on the true position while the pixels scatter around it;
-  the IoU cannot.
-  """
-  pred_mask = color_masks(pred, colors, tolerance)  # [..., H, W, n]
-  true_mask = color_masks(truth, colors, tolerance)
-  if pred_mask.shape != true_mask.shape:
-    raise ValueError(f"pred and truth must have the same shape, got {np.shape(pred)} and "
-                     f"{np.shape(truth)}")
-  intersection = (pred_mask & true_mask).sum((-3, -2))
-  union = (pred_mask | true_mask).sum((-3, -2))
-  with np.errstate(invalid="ignore", divide="ignore"):
-    iou = np.where(union > 0, intersection / np.maximum(union, 1), 1.0)
-  h, w, n = pred_mask.shape[-3:]
-  masks = np.moveaxis(pred_mask, -1, -3).reshape(-1, h, w)  # [..., n, H, W] flattened
-  components = np.array([scipy.ndimage.label(m)[1] for m in masks]).reshape(pred_mask.shape[:-3]
-                                                                              + (n,))
-  return iou, components == 1
+def frame_metrics(pred, truth, extras: Mapping[str, np.ndarray],
+                  task: FrameMetrics | None = None) -> dict[str, np.ndarray]:
+  """Per-frame metrics ``[E, T]`` of ``pred`` against ``truth`` (both ``[E, T, H, W, C]`` RGB,
+  the generated frames only): MSE, PSNR, SSIM and IRASim's grayscale PSNR / SSIM (SSIM needs
+  frames of at least 11 (colour) / 7 (grayscale) pixels), the masked MSE over ``extras['masks']``
+  (per-frame ``[E, T, H, W]``) or the task's object masks, and the ``task``'s own metrics
+  (:class:`wmjax.tasks.registry.FrameMetrics`) from the per-frame ``extras``."""
+  result = {"mse": mse(pred, truth), "psnr": psnr(pred, truth)}
+  h, w, c = np.shape(truth)[-3:]
+  if c == 3:
+    if min(h, w) >= 11:
+      result["ssim"] = ssim(pred, truth, "gaussian")
+    gray_pred, gray_truth = grayscale(pred), grayscale(truth)
+    result["gray_psnr"] = psnr(gray_pred * 2 - 1, gray_truth * 2 - 1)
+    if min(h, w) >= 7:
+      result["gray_ssim"] = ssim(gray_pred * 2 - 1, gray_truth * 2 - 1, "uniform")
+  masks = extras.get("masks")
+  if task is not None:
+    result.update(task.compute(pred, truth, extras))
+    if masks is None and task.object_masks is not None:
+      masks = task.object_masks(pred, truth, extras)
+  if masks is not None:
+    result["masked_mse"] = masked_mse(pred, truth, masks)
+  return {k: np.asarray(v, np.float64) for k, v in result.items()}
 
 
 # ----------------------------------------------------------------------------- Fréchet distances

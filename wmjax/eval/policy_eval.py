@@ -31,10 +31,10 @@ from scipy import stats as scipy_stats
 from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.stats import ActionStats
 from wmjax.env import RewardFn, WorldModelEnv
-from wmjax.frames import to_model
 from wmjax.eval.metrics import mean_stderr
-from wmjax.parallel import mesh_context, shard_rollout_batch
+from wmjax.frames import to_model
 from wmjax.model import WorldModel
+from wmjax.parallel import mesh_context, shard_rollout_batch
 from wmjax.rollout import block_key, sample_block_traceable
 
 Policy = Callable[[Any, jax.Array], Any]

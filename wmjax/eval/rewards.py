@@ -6,8 +6,8 @@
   planning value), as negative MSE;
 * :class:`SuccessClassifier` — a small CNN trained on dataset frames and success labels, giving
   the probability that the last frame shows success;
-* :func:`pusht_coverage` — Push-T goal coverage read from the last frame
-  (:func:`wmjax.pusht.frame_coverage`).
+* a task's named rewards (:mod:`wmjax.tasks.registry`), e.g. ``coverage``: Push-T goal coverage
+  read from the last frame (:func:`wmjax.tasks.pusht.rewards.coverage`).
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ import numpy as np
 import optax
 from flax import serialization
 
-from wmjax import pusht
-from wmjax.frames import to_model
 from wmjax.eval.vlm import VLMJudge  # noqa: F401  (re-exported: the VLM reward)
+from wmjax.frames import to_model
+from wmjax.tasks import registry
 
 
 def _last_frames(frames) -> jax.Array:
@@ -35,12 +35,6 @@ def _last_frames(frames) -> jax.Array:
   if frames.ndim != 5 or frames.shape[-1] != 3:
     raise ValueError(f"rollouts must be [B, T, H, W, 3], got shape {tuple(frames.shape)}")
   return frames[:, -1]
-
-
-def pusht_coverage(frames, instruction=None) -> np.ndarray:
-  """Push-T coverage of the goal in each rollout's last frame ``[B]``."""
-  del instruction
-  return np.asarray(pusht.frame_coverage(_last_frames(frames)), np.float32)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -187,11 +181,13 @@ def labelled_frames(builder_dir: str, split: str, key: str, threshold: float, *,
 
 
 def reward_from_spec(spec: str):
-  """``coverage`` (Push-T), ``vlm`` (:meth:`VLMJudge.from_env`), ``classifier:DIR`` (a saved
+  """A task's reward by name (:func:`wmjax.tasks.registry.rewards`, e.g. ``coverage`` for
+  Push-T), ``vlm`` (:meth:`VLMJudge.from_env`), ``classifier:DIR`` (a saved
   :class:`SuccessClassifier`) or ``goal:IMAGE`` (:class:`GoalImageDistance` to a PNG / JPG)."""
   name, _, argument = spec.partition(":")
-  if name == "coverage" and not argument:
-    return pusht_coverage
+  named = registry.rewards()
+  if name in named and not argument:
+    return named[name]
   if name == "vlm" and not argument:
     return VLMJudge.from_env()
   if name == "classifier" and argument:
@@ -199,4 +195,5 @@ def reward_from_spec(spec: str):
   if name == "goal" and argument:
     from PIL import Image
     return GoalImageDistance(np.asarray(Image.open(argument).convert("RGB")))
-  raise ValueError(f"reward must be coverage, vlm, classifier:DIR or goal:IMAGE, got {spec!r}")
+  raise ValueError(f"reward must be {', '.join(sorted(named))}, vlm, classifier:DIR or "
+                   f"goal:IMAGE, got {spec!r}")

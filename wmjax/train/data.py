@@ -17,12 +17,13 @@ import os
 import ml_collections
 import numpy as np
 
+from wmjax import tasks  # noqa: F401  (importing it registers the generated datasets)
 from wmjax.codecs import Codec, make_codec
 from wmjax.data import oxe
 from wmjax.data.latents import LatentEpisodes, codec_description
 from wmjax.data.pipeline import Normalize, WindowSource, frames_to_float
 from wmjax.data.rlds import stack_steps
-from wmjax.data.sources import ArrayRecordEpisodes, action_stats, dataset_dir
+from wmjax.data.sources import member_configs, open_dataset
 from wmjax.data.stats import ActionStats
 
 
@@ -52,22 +53,6 @@ class TrainData:
     return out
 
 
-def member_configs(data: ml_collections.ConfigDict) -> list[ml_collections.ConfigDict]:
-  """``config.data`` itself, or one config per ``data.mixture`` entry (see the module doc)."""
-  mixture = data.get("mixture")
-  if not mixture:
-    return [data]
-  # a dataset's own reading (spec, camera) is not inherited by the others
-  base = {k: v for k, v in data.to_dict().items() if k not in ("mixture", "spec", "image_key")}
-  members = []
-  for name, entry in mixture.items():
-    member = ml_collections.ConfigDict(dict(base, dataset=name, builder_dir="", latents_dir="",
-                                            weight=1.0))
-    member.update(entry.to_dict())
-    members.append(member)
-  return members
-
-
 def _open_latents(data: ml_collections.ConfigDict, config: ml_collections.ConfigDict):
   directory = os.path.expanduser(data.latents_dir)
   train_episodes = LatentEpisodes(directory, data.get("train_split", "train"))
@@ -85,18 +70,16 @@ def _open_latents(data: ml_collections.ConfigDict, config: ml_collections.Config
 
 def _open_frames(data: ml_collections.ConfigDict, config: ml_collections.ConfigDict,
                  codec: Codec):
-  builder_dir = dataset_dir(data)
-  specs = oxe.specs_from_config(data)
-  train_episodes = ArrayRecordEpisodes(builder_dir, data.get("train_split", "train"), specs)
-  eval_episodes = ArrayRecordEpisodes(builder_dir, data.get("eval_split", "test"), specs)
-  stats = action_stats(builder_dir, train_episodes.split, specs)
-  resolution = tuple(data.get("resolution") or train_episodes.spec.resolution)
+  dataset = open_dataset(data)
+  train_episodes = dataset.split(data.get("train_split", "train"))
+  eval_episodes = dataset.split(data.get("eval_split", "test"))
+  resolution = dataset.resolution(train_episodes.spec)
   if tuple(config.frame_shape) != codec.latent_shape(resolution + (3,)):
     raise ValueError(f"frame_shape {tuple(config.frame_shape)} does not match what the codec "
                      f"({config.get('codec', {}).get('kind', 'pixel')}) makes of "
                      f"{data.dataset}'s {resolution + (3,)} frames: "
                      f"{codec.latent_shape(resolution + (3,))}")
-  return train_episodes, eval_episodes, stats, resolution
+  return train_episodes, eval_episodes, dataset.train_stats(), resolution
 
 
 def build_data(config: ml_collections.ConfigDict) -> TrainData:

@@ -44,14 +44,14 @@ from wmjax import parallel
 from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.pipeline import training_pipeline
 from wmjax.diffusion import diffusion_loss
-from wmjax.eval.protocols import frame_metrics
+from wmjax.errors import CheckpointError, RunError
+from wmjax.eval.metrics import frame_metrics
 from wmjax.eval.video import comparison, stack_rows, write_video
 from wmjax.model import WorldModel
 from wmjax.rollout import rollout
+from wmjax.tasks.registry import FrameMetrics, frame_metrics_of
 from wmjax.train import fit, memory
-from wmjax.errors import CheckpointError
 from wmjax.train.checkpoint import Checkpointer, shapes_by_path
-from wmjax.errors import RunError
 from wmjax.train.data import build_data, eval_windows
 from wmjax.train.resume import check_resume
 from wmjax.train.step import ShardedTrainer
@@ -80,10 +80,12 @@ def _validation_loss(world_model: WorldModel, params: Any, frames: jax.Array, ac
 
 def evaluate(world_model: WorldModel, params: Any, windows: dict[str, np.ndarray],
              config: ml_collections.ConfigDict, rng: jax.Array, codec: Codec,
-             latents: bool = False) -> tuple[dict, np.ndarray, np.ndarray]:
+             latents: bool = False, task: FrameMetrics | None = None
+             ) -> tuple[dict, np.ndarray, np.ndarray]:
   """Validation loss and rollout metrics on ``windows`` (RGB frames, or pre-encoded latents if
-  ``latents``, whose pixel metrics then compare with the codec's reconstructions); returns
-  (metrics, true RGB frames, predicted RGB frames)."""
+  ``latents``, whose pixel metrics then compare with the codec's reconstructions), with the
+  dataset's own metrics (``task``) from the windows' per-frame extras; returns (metrics, true RGB
+  frames, predicted RGB frames)."""
   loss_rng, rollout_rng, encode_rng = jax.random.split(rng, 3)
   if latents:
     frames = jnp.asarray(windows["frames"])
@@ -97,11 +99,13 @@ def evaluate(world_model: WorldModel, params: Any, windows: dict[str, np.ndarray
                                               actions[:, c - 1:], rollout_rng, horizon=h)))
   val_loss = _validation_loss(world_model, params, frames, actions, loss_rng,
                               config.diffusion.regime, config.diffusion.num_context)
-  extras = {k: windows[k][:, c:] for k in ("square_positions",) if k in windows}
+  num_frames = windows["frames"].shape[1]
+  extras = {k: v[:, c:] for k, v in windows.items()
+            if k not in ("frames", "actions") and np.ndim(v) >= 2 and np.shape(v)[1] == num_frames}
   copy_last = np.broadcast_to(truth[:, c - 1:c], truth[:, c:].shape)
   result = {"val_loss": float(val_loss)}
   for prefix, candidate in (("rollout", predicted[:, c:]), ("copy_last", copy_last)):
-    for name, values in frame_metrics(candidate, truth[:, c:], extras).items():
+    for name, values in frame_metrics(candidate, truth[:, c:], extras, task).items():
       result[f"{prefix}_{name}"] = float(np.nanmean(values))
   return result, truth, predicted
 
@@ -298,6 +302,7 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
         seed=config.seed, normalization=config.data.normalization,
         action_dim=config.model.action_dim, num_workers=config.data.num_workers, start=start))
     windows = eval_windows(data, config)
+    task = frame_metrics_of(data.members[0].spec.name)
     if is_chief:
       with open(os.path.join(workdir, "config.json"), "w") as f:
         f.write(config.to_json(indent=2))
@@ -366,7 +371,7 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
         save(step)
       if step % train_cfg.eval_every == 0 and step < num_steps:
         result, truth, predicted = evaluate(world_model, state.ema_params, windows, config,
-                                            jax.random.key(step), data.codec, data.latents)
+                                            jax.random.key(step), data.codec, data.latents, task)
         if is_chief:
           for key, value in result.items():
             writer.add_scalar(f"eval/{key}", value, step)
@@ -393,7 +398,7 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
     checkpoints.wait()
     bar.close()
     result, truth, predicted = evaluate(world_model, state.ema_params, windows, config,
-                                        jax.random.key(num_steps), data.codec, data.latents)
+                                        jax.random.key(num_steps), data.codec, data.latents, task)
     result["step"] = step
     if is_chief:
       write_samples(os.path.join(workdir, "rollout.gif"), truth, predicted)

@@ -1,13 +1,13 @@
 """Push-T episodes from the gym-pusht simulator as an RLDS TFDS dataset in ArrayRecord.
 
 Each episode starts with the T near its goal (centre within ``max_offset`` px, angle within
-``max_angle`` rad, see :func:`wmjax.pusht.random_initial_states`) and the agent elsewhere, and is
-driven by the frame-based :class:`wmjax.pusht.PushPolicy` with Gaussian action noise; episodes
+``max_angle`` rad, see :func:`.simulator.random_initial_states`) and the agent elsewhere, and is
+driven by the frame-based :class:`.simulator.PushPolicy` with Gaussian action noise; episodes
 cycle through ``noise_levels`` (WPE collects with 0.1 / 0.2 / 0.5), so the data holds good
 pushes, poor ones and failures. The action is the agent's target ``(x, y)`` in ``[0, 512]``
 (step ``t``'s action leads to frame ``t + 1``; the last step repeats the agent's position).
 Every step stores the simulator's state (``observation/state``: agent x, y, block x, y, angle as
-gym-pusht's ``state`` observation, the block's body origin; :func:`wmjax.pusht.reset_state` turns
+gym-pusht's ``state`` observation, the block's body origin; :func:`.simulator.reset_state` turns
 it into the simulator's ``reset_to_state``),
 ``observation/coverage``, ``observation/success`` (coverage > 0.95) and the episode's
 ``observation/policy_noise``; the reward is gym-pusht's ``clip(coverage / 0.95, 0, 1)``.
@@ -21,8 +21,8 @@ import jax
 import numpy as np
 import tensorflow_datasets as tfds
 
-from wmjax import pusht
 from wmjax.data import oxe, synthetic
+from wmjax.tasks.pusht import simulator
 
 INSTRUCTION = "push the T-shaped block onto the green T"
 
@@ -75,14 +75,14 @@ def collect(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
   for first in range(0, num_episodes, config.batch):
     count = min(config.batch, num_episodes - first)
     noise = np.array([levels[(first + i) % len(levels)] for i in range(count)], np.float32)
-    states = pusht.random_initial_states(rng, count, max_offset=config.max_offset,
+    states = simulator.random_initial_states(rng, count, max_offset=config.max_offset,
                                          max_angle=config.max_angle)
-    expert = pusht.PushPolicy(chunk=config.chunk)
+    expert = simulator.PushPolicy(chunk=config.chunk)
 
     def policy(frames, key):  # the expert with each episode's own noise level
       return expert.act(frames, key, noise)
 
-    run = pusht.simulate_policy(policy, states, config.episode_length - 1,
+    run = simulator.simulate_policy(policy, states, config.episode_length - 1,
                                 image_size=config.image_size,
                                 key=jax.random.key(int(rng.integers(2**31))))
     for i in range(count):
@@ -90,9 +90,9 @@ def collect(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
       coverage = run["coverage"][i]
       yield synthetic.GeneratedEpisode(
           images=run["frames"][i], actions=actions.astype(np.float32), instruction=INSTRUCTION,
-          rewards=np.clip(coverage / pusht.SUCCESS_COVERAGE, 0, 1).astype(np.float32),
+          rewards=np.clip(coverage / simulator.SUCCESS_COVERAGE, 0, 1).astype(np.float32),
           observations={"state": run["state"][i], "coverage": coverage,
-                        "success": coverage > pusht.SUCCESS_COVERAGE,
+                        "success": coverage > simulator.SUCCESS_COVERAGE,
                         "policy_noise": np.full(len(coverage), noise[i], np.float32)})
 
 

@@ -6,7 +6,7 @@
 * :func:`plan_in_simulator` — model-predictive control by ranking (:mod:`wmjax.eval.planning`)
   executed in the simulator for several candidate counts ``K``; final coverage per ``K``.
 
-Both start each episode from :func:`wmjax.pusht.random_initial_states` (the training data's
+Both start each episode from :func:`.simulator.random_initial_states` (the training data's
 distribution) with ``context - 1`` still steps, so the world model gets the same first ``context``
 frames and the (known) actions between them as the simulator.
 """
@@ -21,11 +21,11 @@ from typing import Any
 import jax
 import numpy as np
 
-from wmjax import pusht
-from wmjax.data.pusht import INSTRUCTION
 from wmjax.env import RewardFn, WorldModelEnv
 from wmjax.eval import planning, policy_eval
 from wmjax.eval.video import comparison, stack_rows, write_video
+from wmjax.tasks.pusht import simulator as pusht
+from wmjax.tasks.pusht.dataset import INSTRUCTION
 
 
 
