@@ -1,4 +1,8 @@
-"""Shared pieces of the model benchmarks: config arguments, timing and the JSON result."""
+"""Shared pieces of the model benchmarks: config arguments, timing and the JSON result.
+
+Config overrides are ``--config.KEY=VALUE``, as for the ``wmjax`` commands
+(:func:`wmjax.config.parse_args_with_overrides`).
+"""
 
 from __future__ import annotations
 
@@ -11,19 +15,25 @@ import time
 
 import jax
 
+from wmjax.config import parse_args_with_overrides
+
 
 def add_config_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--config", required=True, help="config file, optionally file.py:arg")
-  parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                      help="config override, e.g. model.dtype=\"'bfloat16'\" (repeatable)")
   parser.add_argument("--out", default=None,
                       help="JSON path (default benchmarks/results/<kind>-<name>-<platform>.json)")
+
+
+def parse_args(parser: argparse.ArgumentParser) -> argparse.Namespace:
+  """The parser's arguments, with the ``--config.KEY=VALUE`` overrides as ``args.overrides``."""
+  args, args.overrides = parse_args_with_overrides(parser)
+  return args
 
 
 def write_result(kind: str, result: dict, args: argparse.Namespace) -> str:
   """Print ``result`` and save it as JSON (``args.out`` or a name from config and platform)."""
   print(json.dumps(result, indent=2))
-  tag = result["name"].replace("/", "_") + ("-custom" if args.set else "")
+  tag = result["name"].replace("/", "_") + ("-custom" if args.overrides else "")
   out = args.out or os.path.join(os.path.dirname(__file__), "results",
                                  f"{kind}-{tag}-{jax.default_backend()}-b{args.batch}.json")
   os.makedirs(os.path.dirname(out), exist_ok=True)

@@ -2,7 +2,7 @@
 device target without its hardware (``wmjax.train.fit``); one JSON line per setting.
 
   python benchmarks/compile_grid.py --config configs/irasim.py:XL --target h100 \
-      --batch 8 --batch 16 --remat none --remat dots --set "model.dtype='bfloat16'" \
+      --batch 8 --batch 16 --remat none --remat dots --config.model.dtype=bfloat16 \
       [--out benchmarks/results/compile-irasim-h100.jsonl]
 
 ``--largest`` instead finds, per remat setting, the largest global batch (a multiple of the
@@ -17,7 +17,7 @@ import sys
 
 import jax
 
-from wmjax.config import load_config
+from wmjax.config import load_config, parse_args_with_overrides
 from wmjax.train import fit
 
 
@@ -28,20 +28,19 @@ def main() -> None:
   parser.add_argument("--target", required=True)
   parser.add_argument("--batch", type=int, action="append", default=[])
   parser.add_argument("--remat", action="append", default=[], choices=fit.REMAT_LADDER)
-  parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
   parser.add_argument("--largest", action="store_true")
   parser.add_argument("--out", default=None)
-  args = parser.parse_args()
+  args, overrides = parse_args_with_overrides(parser)
   jax.config.update("jax_platforms", "cpu")
   name, _, count = args.target.partition(":")
   if name == "cpu":
     jax.config.update("jax_num_cpu_devices", int(count or 1))
-  config = load_config(args.config, args.set)
+  config = load_config(args.config, overrides)
   target = fit.parse_target(args.target)
   out = open(args.out, "a") if args.out else None
 
   def record(report):
-    line = json.dumps({"config": args.config, "overrides": args.set, **report})
+    line = json.dumps({"config": args.config, "overrides": overrides, **report})
     print(line, flush=True)
     if out:
       out.write(line + "\n")

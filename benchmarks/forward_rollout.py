@@ -2,7 +2,7 @@
 writes JSON.
 
   python benchmarks/forward_rollout.py --config configs/irasim.py:S --batch 1 --batch 8 \
-      --frames 30 [--set model.dtype="'bfloat16'" ...] [--out benchmarks/results/NAME.json]
+      --frames 30 [--config.model.dtype=bfloat16 ...] [--out benchmarks/results/NAME.json]
 
 Forward: one network call on a full window ``[B, c+h, H, W, C]`` (``config.frame_shape``).
 Rollout: ``--frames`` new frames from ``c`` context frames with the config's sampler, context and
@@ -22,11 +22,11 @@ import platform
 import jax
 import jax.numpy as jnp
 
-from common import add_config_arguments, median_seconds, peak_memory, write_result
+from common import add_config_arguments, median_seconds, parse_args, peak_memory, write_result
 from profile_ops import format_table, top_ops
 from wmjax.config import load_config
-from wmjax.nn import forward_flops
 from wmjax.model import WorldModel
+from wmjax.nn import forward_flops
 from wmjax.rollout import block_flops, rollout
 
 
@@ -58,7 +58,7 @@ def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,
   blocks = -(-frames // h)
   flops_per_block = block_flops(wm, batch, c, h, shape[0], shape[1])
   return {
-      "config": config_spec, "overrides": overrides, "name": config.get("name", config_spec),
+      "config": config_spec, "overrides": overrides, "name": config.name or config_spec,
       "device": jax.devices()[0].device_kind, "platform": jax.default_backend(),
       "num_devices": jax.device_count(), "host": platform.node(), "jax": jax.__version__,
       "dtype": net.dtype, "batch": batch, "frame_shape": shape, "window_frames": n,
@@ -83,9 +83,9 @@ def main():
   parser.add_argument("--repeats", type=int, default=3)
   parser.add_argument("--profile", default=None, metavar="DIR",
                       help="trace one more rollout per batch into DIR; device time by op")
-  args = parser.parse_args()
+  args = parse_args(parser)
   batches = sorted(set(args.batch or [1]))
-  runs = [benchmark(args.config, args.set, b, args.frames, args.repeats, args.profile)
+  runs = [benchmark(args.config, args.overrides, b, args.frames, args.repeats, args.profile)
           for b in batches]
   best = max(runs, key=lambda r: r["rollout_frames_per_s"])
   result = dict(best, batches=runs) if len(runs) > 1 else best

@@ -23,7 +23,7 @@ traces=${TRACE_DIR:-${TMPDIR:-/tmp}/wmjax-traces}
 mkdir -p "$out"
 export XLA_PYTHON_CLIENT_MEM_FRACTION=${XLA_PYTHON_CLIENT_MEM_FRACTION:-0.95}
 platform=$(python -c "import jax; print(jax.default_backend())")
-fast=(--set "model.dtype='bfloat16'" --set "model.attention_impl='auto'")
+fast=(--config.model.dtype=bfloat16 --config.model.attention_impl=auto)
 
 check() {
   # The suite's train settings compiled for the card first (deviceless, on the host's CPU; about a
@@ -40,10 +40,10 @@ train() {
   check
   # IRASim-XL/2 trains on 16-frame windows, WPE-600M on 20-frame ones (WPE table 5: batch 16).
   python benchmarks/train_step.py --config configs/irasim.py:XL "${fast[@]}" \
-      --set "model.remat='dots'" --batch 16 --steps 5 --profile "$traces/train-irasim" \
+      --config.model.remat=dots --batch 16 --steps 5 --profile "$traces/train-irasim" \
       --out "$out/train_step-irasim-XL_2-bf16-b16-$platform.json"
   python benchmarks/train_step.py --config configs/wpe_600m.py "${fast[@]}" \
-      --set "model.remat='dots'" --batch 16 --steps 5 --profile "$traces/train-wpe" \
+      --config.model.remat=dots --batch 16 --steps 5 --profile "$traces/train-wpe" \
       --out "$out/train_step-wpe-600m-bf16-b16-$platform.json"
 }
 
@@ -51,12 +51,12 @@ rollout() {
   for steps in 59 10; do
     # IRASim chains 15-frame blocks after one context frame (bidirectional: no KV cache).
     python benchmarks/forward_rollout.py --config configs/irasim.py:XL "${fast[@]}" \
-        --set sampling.num_steps=$steps --batch 8 --frames 15 --repeats 2 \
+        --config.sampling.num_steps=$steps --batch 8 --frames 15 --repeats 2 \
         --out "$out/forward_rollout-irasim-XL_2-bf16-steps$steps-$platform.json"
     # WPE: 9 context + 9 new frames, causal, with and without the temporal KV cache.
     for kv in True False; do
       python benchmarks/forward_rollout.py --config configs/wpe_600m.py "${fast[@]}" \
-          --set sampling.num_steps=$steps --set sampling.kv_cache=$kv \
+          --config.sampling.num_steps=$steps --config.sampling.kv_cache=$kv \
           --batch 8 --frames 18 --repeats 2 \
           --out "$out/forward_rollout-wpe-600m-bf16-steps$steps-kv$kv-$platform.json"
     done

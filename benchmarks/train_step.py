@@ -1,7 +1,7 @@
 """Train-step time, samples/s and model FLOP utilisation (MFU) of any config; writes JSON.
 
   python benchmarks/train_step.py --config configs/irasim.py:XL --batch 8 \
-      --set model.dtype="'bfloat16'" [--set model.remat="'dots'"] [--peak_tflops 989]
+      --config.model.dtype=bfloat16 [--config.model.remat=dots] [--peak_tflops 989]
 
 ``--profile DIR`` traces three more steps with ``jax.profiler`` and adds the device time per op
 class and the top ops to the JSON (benchmarks/profile_ops.py).
@@ -22,12 +22,13 @@ import time
 import jax
 import jax.numpy as jnp
 
-from common import add_config_arguments, check_fits, compiled_memory, peak_memory, write_result
+from common import (add_config_arguments, check_fits, compiled_memory, parse_args, peak_memory,
+                    write_result)
 from profile_ops import format_table, top_ops
 from wmjax.config import load_config
+from wmjax.model import WorldModel
 from wmjax.nn import forward_flops
 from wmjax.parallel import make_mesh
-from wmjax.model import WorldModel
 from wmjax.train.step import ShardedTrainer
 
 PEAK_BF16_TFLOPS = {"H100": 989.0, "H200": 989.0, "A100": 312.0}
@@ -84,7 +85,7 @@ def benchmark(spec: str, overrides: list[str], batch: int, frames: int | None, s
   peak = peak or peak_tflops(device)
   achieved = flops / step_s / 1e12
   return {
-      "config": spec, "overrides": overrides, "name": config.get("name", spec), "device": device,
+      "config": spec, "overrides": overrides, "name": config.name or spec, "device": device,
       "num_devices": jax.device_count(), "mesh": list(trainer.mesh.shape.values()),
       "jax": jax.__version__, "dtype": wm.network.dtype, "remat": wm.network.remat,
       "batch": batch, "frames": frames, "frame_shape": shape, "compile_s": compile_s,
@@ -108,9 +109,9 @@ def main():
                       help="trace 3 steps into DIR and report device time by op")
   parser.add_argument("--hlo", default=None, metavar="FILE.gz",
                       help="write the compiled step's HLO text (gzipped), to look up profiled ops")
-  args = parser.parse_args()
+  args = parse_args(parser)
   mesh = tuple(int(v) for v in args.mesh.split(","))
-  result = benchmark(args.config, args.set, args.batch, args.frames, args.steps, mesh,
+  result = benchmark(args.config, args.overrides, args.batch, args.frames, args.steps, mesh,
                      args.peak_tflops, args.profile, args.hlo)
   write_result("train_step", result, args)
 

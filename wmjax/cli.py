@@ -30,11 +30,7 @@ import sys
 import jax
 import numpy as np
 
-
-OVERRIDES_HELP = ("Config overrides: --config.KEY=VALUE, any number, with a Python literal "
-                  "VALUE (strings may be bare), e.g. --config.train.num_steps=100 "
-                  "--config.optim.learning_rate=3e-4 --config.model.dtype=bfloat16; an unknown "
-                  "KEY is an error that names the nearest one.")
+from wmjax.config import OVERRIDES_HELP, split_overrides
 
 RESUME_HELP = ("Rerunning in a WORKDIR with checkpoints resumes from the newest one that reads "
                "back (a damaged newer one is moved to WORKDIR/damaged_checkpoints with a "
@@ -46,10 +42,11 @@ RESUME_HELP = ("Rerunning in a WORKDIR with checkpoints resumes from the newest 
 
 
 def _overrides(extra: list[str]) -> list[str]:
-  bad = [a for a in extra if not a.startswith("--config.")]
+  """The ``--config.KEY=VALUE`` overrides of a command (the shared syntax, wmjax.config)."""
+  overrides, bad = split_overrides(extra)
   if bad:
-    raise SystemExit(f"wmjax: unrecognised arguments {bad}; overrides look like --config.key=value")
-  return extra
+    raise SystemExit(f"wmjax: unrecognised arguments {bad}; overrides look like --config.KEY=VALUE")
+  return overrides
 
 
 def _config_from_args(args, extra: list[str]):
@@ -261,7 +258,7 @@ def cmd_info(args, extra) -> int:
   guidance = 2 if wm.guided else 1
   sampling_flops = block_flops(wm, 1, config.rollout.context, config.rollout.horizon, h, w)
   info = {
-      "name": config.get("name", args.config),
+      "name": config.name or args.config,
       "parameters": params,
       "parameter_bytes_fp32": 4 * params,
       "frame_shape": [h, w, c],
@@ -388,16 +385,15 @@ def cmd_data_encode(args, extra) -> int:
     raise SystemExit(f"wmjax data encode: --dataset {args.dataset!r} is not in the config's data "
                      f"({sorted(members)})")
   data = members[args.dataset] if args.dataset else next(iter(members.values()))
-  codec = make_codec(config.get("codec"))
+  codec = make_codec(config.codec)
   dataset = open_dataset(data)
-  splits = args.splits.split(",") if args.splits else [data.get("train_split", "train"),
-                                                       data.get("eval_split", "test")]
+  splits = args.splits.split(",") if args.splits else [data.train_split, data.eval_split]
   resolution = dataset.resolution(dataset.split(splits[0]).spec)
   stats = dataset.train_stats()
   keys = (jax.random.fold_in(jax.random.key(args.seed), i) for i in itertools.count())
   out = encode_dataset(dataset.builder_dir, args.out, splits, dataset.specs, resolution,
                        lambda frames: np.asarray(codec.encode(to_model(frames), next(keys))),
-                       codec_description(config.get("codec")), stats.to_dict())
+                       codec_description(config.codec), stats.to_dict())
   print(out)
   return 0
 
@@ -632,6 +628,7 @@ def main(argv: list[str] | None = None) -> int:
   args, extra = parser.parse_known_args(argv)
   if args.func is not cmd_launch:  # launch passes the rest on to its command
     bad = [a for a in extra if not (args.takes_overrides and a.startswith("--config."))]
+    bad += [a for a in extra if a.startswith("--config.") and "=" not in a]
     if bad:
       args.command_parser.error(
           f"unrecognized arguments: {' '.join(bad)}"

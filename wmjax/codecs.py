@@ -23,7 +23,9 @@ from typing import Any, Protocol
 import jax
 import jax.numpy as jnp
 import ml_collections
+from einops import rearrange
 
+from wmjax.config import codec_config  # noqa: F401  (config.codec with every field; re-exported)
 from wmjax.nn.vae import AutoencoderKL, load_diffusers
 
 CODECS = ("pixel", "patch", "vae")
@@ -80,20 +82,14 @@ class PatchCodec:
   def encode(self, frames, rng=None):
     del rng
     frames = jnp.asarray(frames, jnp.float32)
-    *lead, h, w, c = frames.shape
-    self.latent_shape((h, w, c))
+    self.latent_shape(frames.shape[-3:])  # checks the patch size divides the frame
     p = self.patch_size
-    x = frames.reshape(*lead, h // p, p, w // p, p, c)
-    x = jnp.moveaxis(x, -4, -3)  # [..., h, w, p, p, c]
-    return x.reshape(*lead, h // p, w // p, p * p * c)
+    return rearrange(frames, "... (h py) (w px) c -> ... h w (py px c)", py=p, px=p)
 
   def decode(self, latents):
     latents = jnp.asarray(latents, jnp.float32)
-    *lead, h, w, d = latents.shape
     p = self.patch_size
-    x = latents.reshape(*lead, h, w, p, p, d // (p * p))
-    x = jnp.moveaxis(x, -3, -4)  # [..., h, p, w, p, c]
-    return x.reshape(*lead, h * p, w * p, d // (p * p))
+    return rearrange(latents, "... h w (py px c) -> ... (h py) (w px) c", py=p, px=p)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -163,36 +159,24 @@ def _vae_decode(codec: VAECodec, params, latents: jax.Array) -> jax.Array:
   return jnp.clip(_over_frames(one, z, codec.chunk), -1.0, 1.0)
 
 
-def codec_config(**overrides) -> ml_collections.ConfigDict:
-  """``config.codec`` with every field: kind, path, patch_size, dtype, sample, chunk,
-  scaling_factor, shift_factor (None: from the VAE's config.json)."""
-  fields = dict(kind="pixel", path="", patch_size=1, dtype="float32", sample=False, chunk=16,
-                scaling_factor=None, shift_factor=None)
-  unknown = set(overrides) - set(fields)
-  if unknown:
-    raise ValueError(f"unknown codec fields {sorted(unknown)}; known: {sorted(fields)}")
-  fields.update(overrides)
-  return ml_collections.ConfigDict(fields, type_safe=False)
-
-
 def make_codec(config: ml_collections.ConfigDict | None) -> Codec:
-  """The codec a world-model config names (``config.codec``; none means pixels)."""
+  """The codec a world-model config names (``config.codec``, schema
+  :class:`wmjax.config.CodecConfig`, made by :func:`codec_config`; none means pixels)."""
   if config is None:
     return PixelCodec()
-  kind = config.get("kind", "pixel")
+  kind = config.kind
   if kind == "pixel":
     return PixelCodec()
   if kind == "patch":
     return PatchCodec(int(config.patch_size))
   if kind != "vae":
     raise ValueError(f"codec.kind must be one of {CODECS}, got {kind!r}")
-  if not config.get("path"):
+  if not config.path:
     raise ValueError("codec.kind='vae' needs codec.path: a diffusers AutoencoderKL folder "
                      "(config.json + diffusion_pytorch_model.safetensors)")
-  module, params = load_diffusers(config.path, jnp.dtype(config.get("dtype", "float32")))
-  scaling = config.get("scaling_factor")
-  shift = config.get("shift_factor")
+  module, params = load_diffusers(config.path, jnp.dtype(config.dtype))
+  scaling, shift = config.scaling_factor, config.shift_factor
   return VAECodec(module, params,
                   module.config.scaling_factor if scaling is None else float(scaling),
                   (module.config.shift_factor or 0.0) if shift is None else float(shift),
-                  bool(config.get("sample", False)), int(config.get("chunk", 16)))
+                  bool(config.sample), int(config.chunk))

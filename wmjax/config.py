@@ -1,35 +1,524 @@
-"""Load ``ml_collections`` config files: ``path/to/config.py[:arg]`` plus ``key=value`` overrides."""
+"""Configs: the schema of every section with its defaults, ``ml_collections`` config files
+(``path/to/config.py[:arg]``) and ``--config.KEY=VALUE`` overrides.
+
+A config is an ``ml_collections.ConfigDict`` whose sections follow the dataclasses below (and,
+for ``model``, ``sampling`` and ``data.spec``, the dataclasses they configure:
+:class:`wmjax.nn.STDiT`, :class:`wmjax.diffusion.SamplerConfig`,
+:class:`wmjax.data.oxe.DatasetSpec`; ``data.<generated dataset>`` follows that dataset's
+parameters, e.g. :class:`~wmjax.data.gridworld.GridworldConfig`). :func:`complete_config` checks a
+config against them: an unknown key raises :class:`ConfigError` naming the nearest valid keys, a
+value of the wrong type raises naming the type wanted, and every key left out takes its default
+here, so code reads ``config.data.train_split`` and never repeats a default. Config files and
+overrides are checked when they are loaded (:func:`load_config`); a config saved by an older
+version (a workdir's ``config.json``, a checkpoint's) loads with the keys added since at their
+defaults (``strict=False`` also keeps keys since removed).
+"""
 
 from __future__ import annotations
 
+import argparse
 import ast
 import dataclasses
 import difflib
+import importlib
 import importlib.util
 import os
-from typing import Sequence
+import sys
+import types
+import typing
+from typing import Any, Mapping, Sequence
 
 import ml_collections
+
+OVERRIDE_PREFIX = "--config."
 
 
 class ConfigError(ValueError):
   """A config file or override that cannot be used (unknown key, wrong type, missing file)."""
 
 
-def _parse_value(text: str):
-  try:
-    return ast.literal_eval(text)
-  except (ValueError, SyntaxError):
-    return text
+# --------------------------------------------------------------------------------------------
+# Schemas. A field holding a section is declared with ``_section``: its schema is a dataclass,
+# named by "module:Class" where importing it here would load the model stack at import time.
+
+
+def _section(schema: Any, *, optional: bool = False, mapping: bool = False,
+             skip: Sequence[str] = (), fill: Mapping[str, Any] | None = None) -> Any:
+  """A field holding a sub-section of ``schema`` (a dataclass or ``'module:Class'``);
+  ``optional``: absent means None; ``mapping``: ``{name: section}`` (default empty); ``skip``:
+  fields of the dataclass that are not config; ``fill``: values of its fields without a
+  default."""
+  return dataclasses.field(
+      default=None, metadata=dict(schema=schema, optional=optional, mapping=mapping,
+                                  skip=tuple(skip), fill=dict(fill or {})))
+
+
+@dataclasses.dataclass(frozen=True)
+class CodecConfig:
+  """``config.codec``: what the network sees (see :func:`wmjax.codecs.make_codec`)."""
+
+  kind: str = "pixel"  # 'pixel' | 'patch' | 'vae'
+  path: str = ""  # vae: a diffusers AutoencoderKL folder
+  patch_size: int = 1  # patch
+  dtype: str = "float32"  # vae compute dtype
+  sample: bool = False  # vae: sample the posterior instead of taking its mean
+  chunk: int = 16  # vae: frames encoded / decoded at a time
+  scaling_factor: float | None = None  # vae; None: from the VAE's config.json
+  shift_factor: float | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class MixtureMember:
+  """One entry of ``config.data.mixture``; a None field takes the data section's value."""
+
+  builder_dir: str = ""
+  latents_dir: str = ""
+  weight: float = 1.0
+  train_split: str | None = None
+  eval_split: str | None = None
+  spec: Any = _section("wmjax.data.oxe:DatasetSpec", optional=True, fill={"name": ""})
+  image_key: str | tuple[str, ...] | None = None
+  resize: str | None = None
+  missing_image: str | None = None
+  frame_step: int | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+  """``config.data``: one dataset (or a weighted ``mixture``) and how windows are cut from it.
+
+  ``dataset`` names a built-in layout (Open-X names, ``lerobot``) or a generated dataset
+  (``gridworld``, ``pusht``: made in ``data_dir`` with the parameters of ``data.<dataset>``);
+  others need ``spec``. ``image_key``, ``resize``, ``missing_image``, ``frame_step`` override the
+  spec's where set (``""`` / None: the spec's).
+  """
+
+  dataset: str = ""
+  data_dir: str = "~/tensorflow_datasets"  # where generated datasets are written
+  builder_dir: str = ""  # an ArrayRecord builder directory (`wmjax data convert`)
+  latents_dir: str = ""  # pre-encoded latents (`wmjax data encode`) instead of frames
+  spec: Any = _section("wmjax.data.oxe:DatasetSpec", optional=True, fill={"name": ""})
+  image_key: str | tuple[str, ...] = ""
+  resize: str | None = None  # 'crop' | 'pad'
+  missing_image: str | None = None  # 'skip' | 'error'
+  frame_step: int | None = None
+  resolution: tuple[int, int] | None = None  # (H, W); None: the spec's / the camera's
+  frames: int = 16  # window length
+  train_stride: int = 1
+  eval_stride: int = 16
+  normalization: str = "mean_std"  # of actions: 'mean_std' | 'bounds' | 'none'
+  num_workers: int = 0  # grain worker processes
+  train_split: str = "train"
+  eval_split: str = "test"
+  mixture: Any = _section(MixtureMember, mapping=True)
+
+  @staticmethod
+  def extra_sections() -> dict[str, type]:
+    """``data.<name>`` sections beyond the fields: each generated dataset's parameters (the
+    tasks register their datasets when :mod:`wmjax.tasks` is imported)."""
+    if importlib.util.find_spec("wmjax.tasks") is not None:
+      importlib.import_module("wmjax.tasks")
+    from wmjax import tasks  # noqa: F401  (its tasks register their generated datasets)
+    from wmjax.data.sources import GENERATED
+    return {name: entry[0] for name, entry in GENERATED.items()}
+
+
+@dataclasses.dataclass(frozen=True)
+class DiffusionConfig:
+  """``config.diffusion``: the process (:func:`wmjax.diffusion.objectives.make_process`) and how
+  training draws noise levels (:func:`wmjax.diffusion.objectives.training_noise`)."""
+
+  kind: str = "gaussian"  # 'gaussian' | 'flow' | 'regression'
+  schedule: str = "linear"  # gaussian: 'linear' | 'cosine' | 'sigmoid'
+  num_timesteps: int = 1000
+  prediction: str = "eps"  # gaussian: 'eps' | 'x0' | 'v'
+  regime: str = "per_frame"  # 'per_frame' (diffusion forcing) | 'irasim' (clean context)
+  num_context: int = 1  # context frames the loss leaves out
+
+
+@dataclasses.dataclass(frozen=True)
+class RolloutConfig:
+  """``config.rollout``: blockwise generation, ``context`` frames kept, ``horizon`` new a block."""
+
+  context: int = 1
+  horizon: int = 15
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimConfig:
+  """``config.optim``; defaults are IRASim's recipe (paper table 10)."""
+
+  learning_rate: float = 1e-4
+  schedule: str = "constant"  # 'constant' | 'warmup' (linear, then constant) | 'cosine'
+  warmup_steps: int = 0
+  total_steps: int = 300_000  # cosine decay length
+  b1: float = 0.9
+  b2: float = 0.999
+  weight_decay: float = 0.0
+  grad_clip: float = 0.1  # global norm; 0 disables
+  ema_decay: float = 0.9999
+  grad_accum: int = 1  # micro-batches the global batch is cut into inside one step
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  """``config.train``: the training loop."""
+
+  num_steps: int = 300_000
+  log_every: int = 100
+  checkpoint_every: int = 5_000
+  eval_every: int = 5_000
+  eval_windows: int = 16  # held-out windows evaluated every eval_every steps
+  max_checkpoints: int = 3
+  # fit before the first step: compiled memory against the device's limit (or the budget)
+  auto_fit: bool = True
+  memory_budget_gib: float | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+  """The whole config: top-level keys and sections."""
+
+  frame_shape: tuple[int, int, int]  # what the network sees per frame: (H, W, C) after the codec
+  batch_size: int  # global
+  name: str = ""
+  codec: Any = _section(CodecConfig)
+  data: Any = _section(DataConfig)
+  model: Any = _section("wmjax.nn.dit:STDiT", skip=("parent", "name"))
+  diffusion: Any = _section(DiffusionConfig)
+  sampling: Any = _section("wmjax.diffusion.sampling:SamplerConfig")
+  rollout: Any = _section(RolloutConfig)
+  optim: Any = _section(OptimConfig)
+  train: Any = _section(TrainConfig)
+  mesh: tuple[int, ...] = (-1, 1, 1)  # (data, fsdp, tensor); -1: the remaining devices
+  seed: int = 0
+
+
+# --------------------------------------------------------------------------------------------
+# Checking a config against the schemas.
+
+_MISSING = dataclasses.MISSING
+
+
+@dataclasses.dataclass(frozen=True)
+class _Field:
+  hint: Any
+  default: Any
+  schema: Any = None  # a sub-section's dataclass
+  optional: bool = False
+  mapping: bool = False
+  skip: tuple[str, ...] = ()
+  fill: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+
+
+def _resolve(schema: Any) -> type:
+  if isinstance(schema, str):
+    module, _, name = schema.partition(":")
+    return getattr(importlib.import_module(module), name)
+  return schema
+
+
+def _fields(cls: type, skip: Sequence[str] = ()) -> dict[str, _Field]:
+  hints = typing.get_type_hints(cls)
+  out = {}
+  for f in dataclasses.fields(cls):
+    if f.name in skip or not f.init:
+      continue
+    default = (f.default if f.default is not _MISSING else
+               f.default_factory() if f.default_factory is not _MISSING else _MISSING)
+    if "schema" in f.metadata:
+      out[f.name] = _Field(Any, None, f.metadata["schema"], f.metadata["optional"],
+                           f.metadata["mapping"], f.metadata["skip"], f.metadata["fill"])
+    else:
+      out[f.name] = _Field(hints.get(f.name, Any), default)
+  return out
+
+
+def _nearest(key: str, known: Sequence[str]) -> list[str]:
+  return difflib.get_close_matches(key, list(known), n=3, cutoff=0.6)
+
+
+def unknown_key_error(key: str, known: Sequence[str], where: str = "") -> ConfigError:
+  """The error for ``key`` (under section ``where``), naming the nearest of ``known``."""
+  prefix = f"{where}." if where else ""
+  close = _nearest(key, known)
+  hint = (f"did you mean {' or '.join(prefix + c for c in close)}?" if close else
+          f"{where or 'the config'} has {', '.join(sorted(known))}")
+  return ConfigError(f"unknown config key {prefix + key!r}; {hint}")
+
+
+@dataclasses.dataclass(frozen=True)
+class _Text:
+  """An override's value: the literal it parses as, or (where the key wants a string) its text."""
+
+  text: str
+
+  @property
+  def literal(self):
+    try:
+      return ast.literal_eval(self.text)
+    except (ValueError, SyntaxError):
+      return self.text
+
+
+def _describe(hint: Any) -> str:
+  if hint is type(None) or hint is None:
+    return "None"
+  origin = typing.get_origin(hint)
+  if origin in (typing.Union, types.UnionType):
+    return " or ".join(_describe(a) for a in typing.get_args(hint))
+  if origin is tuple:
+    args = typing.get_args(hint)
+    if len(args) == 2 and args[1] is Ellipsis:
+      return f"a tuple of {_describe(args[0])}"
+    return f"a tuple ({', '.join(_describe(a) for a in args)})"
+  return getattr(hint, "__name__", str(hint))
+
+
+_NO = object()
+
+
+def _typed(value: Any, hint: Any) -> Any:
+  """``value`` as ``hint`` (ints are floats where floats are wanted, lists are tuples), or _NO."""
+  if isinstance(value, _Text):
+    literal = _typed(value.literal, hint)
+    return literal if literal is not _NO else _typed(value.text, hint)
+  if hint is Any or hint is object:
+    return value
+  if hint is type(None) or hint is None:
+    return None if value is None else _NO
+  origin = typing.get_origin(hint)
+  if origin in (typing.Union, types.UnionType):
+    args = typing.get_args(hint)
+    if value is None:
+      return None if type(None) in args else _NO
+    for arg in args:  # an exact type first: 3 stays an int in int | float
+      if arg is not type(None) and _typed(value, arg) is not _NO and (
+          not isinstance(arg, type) or isinstance(value, arg)):
+        return _typed(value, arg)
+    for arg in args:
+      out = _typed(value, arg)
+      if out is not _NO:
+        return out
+    return _NO
+  if origin is tuple:
+    if not isinstance(value, (tuple, list)):
+      return _NO
+    args = typing.get_args(hint)
+    each = ([args[0]] * len(value) if len(args) == 2 and args[1] is Ellipsis else
+            list(args) if len(args) == len(value) else None)
+    if each is None:
+      return _NO
+    out = tuple(_typed(v, a) for v, a in zip(value, each))
+    return _NO if any(v is _NO for v in out) else out
+  if origin in (dict, Mapping) or hint in (dict, Mapping):
+    return dict(value) if isinstance(value, Mapping) else _NO
+  if hint is bool:
+    return value if isinstance(value, bool) else _NO
+  if hint is int:
+    return value if isinstance(value, int) and not isinstance(value, bool) else _NO
+  if hint is float:
+    return (float(value) if isinstance(value, (int, float)) and not isinstance(value, bool)
+            else _NO)
+  if isinstance(hint, type):
+    return value if isinstance(value, hint) else _NO
+  return value
+
+
+def _plain(value: Any) -> Any:
+  if isinstance(value, ml_collections.ConfigDict):
+    return value.to_dict()
+  if isinstance(value, ml_collections.FieldReference):
+    return value.get()
+  return value
+
+
+def _complete(cls: type, values: Any, where: str, strict: bool, skip: Sequence[str] = (),
+              construct: bool = False, fill: Mapping[str, Any] | None = None) -> dict:
+  """``values`` (a mapping) checked against the dataclass ``cls``, with defaults filled in;
+  ``construct``: through ``cls.from_dict`` (its defaults for keys an older config lacks, its
+  value checks)."""
+  values = _plain(values)
+  if values is None:
+    values = {}
+  if not isinstance(values, Mapping):
+    raise ConfigError(f"{where or 'the config'} must be a section (a dict of keys), got "
+                      f"{values!r}")
+  fields = _fields(cls, skip)
+  extra = getattr(cls, "extra_sections", None)
+  extra = extra() if extra and any(k not in fields for k in values) else {}
+  out, given = {}, {}
+  for key, value in values.items():
+    name = f"{where}.{key}" if where else key
+    if key in extra:
+      out[key] = _complete(extra[key], value, name, strict, construct=True)
+      continue
+    if key not in fields:
+      if strict:
+        raise unknown_key_error(key, list(fields) + list(extra), where)
+      out[key] = _plain(value)
+      continue
+    field = fields[key]
+    value = _plain(value)
+    if field.schema is not None:
+      schema = _resolve(field.schema)
+      if value is None and (field.optional or field.mapping):
+        given[key] = {} if field.mapping else None
+      elif field.mapping:
+        if not isinstance(value, Mapping):
+          raise ConfigError(f"{name} must be a dict of sections, got {value!r}")
+        given[key] = {k: _complete(schema, v, f"{name}.{k}", strict, field.skip,
+                                   fill=field.fill) for k, v in value.items()}
+      else:
+        given[key] = _complete(schema, value, name, strict, field.skip, fill=field.fill)
+    else:
+      typed = _typed(value, field.hint)
+      if typed is _NO:
+        shown = (value.text if isinstance(value, _Text) else
+                 f"{value!r} ({type(value).__name__})")
+        raise ConfigError(f"config key {name!r} must be {_describe(field.hint)}, got {shown}")
+      given[key] = typed
+  for key, field in fields.items():
+    if key in given:
+      continue
+    name = f"{where}.{key}" if where else key
+    if field.schema is not None:
+      given[key] = ({} if field.mapping else None if field.optional else
+                    _complete(_resolve(field.schema), {}, name, strict, field.skip,
+                              fill=field.fill))
+    elif fill and key in fill:
+      given[key] = fill[key]
+    elif field.default is _MISSING:
+      raise ConfigError(f"the config has no {name!r} ({_describe(field.hint)})")
+  if construct:
+    try:
+      made = cls.from_dict(given)
+    except (TypeError, ValueError) as e:
+      raise ConfigError(f"{where or 'the config'}: {e}") from e
+    given = {k: getattr(made, k) for k in _fields(cls, skip)}
+  for key, field in fields.items():
+    if key not in given:
+      given[key] = field.default
+  return {**{k: given[k] for k in fields}, **out}
+
+
+def complete_config(config: Mapping | ml_collections.ConfigDict, strict: bool = True
+                    ) -> ml_collections.ConfigDict:
+  """``config`` checked against :class:`Config` with every key left out at its default.
+
+  Unknown keys and values of the wrong type raise :class:`ConfigError`; ``strict=False`` (for a
+  config saved by another version) keeps unknown keys as they are instead.
+  """
+  return ml_collections.ConfigDict(_complete(Config, config, "", strict))
+
+
+def section_config(section: str, **values) -> ml_collections.ConfigDict:
+  """Every field of the top-level ``section`` (e.g. ``'model'``) at its default, updated by
+  ``values`` (checked: an unknown field names the nearest)."""
+  fields = _fields(Config)
+  if section not in fields or fields[section].schema is None:
+    raise unknown_key_error(section, [k for k, f in fields.items() if f.schema is not None])
+  field = fields[section]
+  return ml_collections.ConfigDict(
+      _complete(_resolve(field.schema), values, section, True, field.skip, fill=field.fill))
+
+
+def model_config(**values) -> ml_collections.ConfigDict:
+  """Every :class:`wmjax.nn.STDiT` field with its default, updated by ``values``."""
+  return section_config("model", **values)
+
+
+def sampling_config(**values) -> ml_collections.ConfigDict:
+  """Every :class:`wmjax.diffusion.SamplerConfig` field with its default, updated by ``values``."""
+  return section_config("sampling", **values)
+
+
+def optim_config(**values) -> ml_collections.ConfigDict:
+  """Every :class:`OptimConfig` field with its default, updated by ``values``."""
+  return section_config("optim", **values)
+
+
+def codec_config(**values) -> ml_collections.ConfigDict:
+  """Every :class:`CodecConfig` field with its default, updated by ``values``."""
+  return section_config("codec", **values)
+
+
+# --------------------------------------------------------------------------------------------
+# Config files and overrides.
+
+
+def split_overrides(argv: Sequence[str]) -> tuple[list[str], list[str]]:
+  """``(overrides, rest)`` of command-line arguments: ``--config.KEY=VALUE`` are overrides (the
+  one syntax of the CLI, the benchmarks and the experiments); a bare ``--config.KEY`` is an
+  error."""
+  overrides, rest = [], []
+  for arg in argv:
+    if arg.startswith(OVERRIDE_PREFIX):
+      if "=" not in arg:
+        raise ConfigError(f"override {arg!r} has no value; overrides look like "
+                          f"{OVERRIDE_PREFIX}KEY=VALUE")
+      overrides.append(arg)
+    else:
+      rest.append(arg)
+  return overrides, rest
+
+
+OVERRIDES_HELP = (
+    "Config overrides: --config.KEY=VALUE, any number, with a Python literal VALUE (strings may "
+    "be bare), e.g. --config.train.num_steps=100 --config.optim.learning_rate=3e-4 "
+    "--config.model.dtype=bfloat16 --config.mesh='(1,-1,1)'; an unknown key or a value of the "
+    "wrong type is an error naming the nearest valid keys.")
+
+
+def parse_args_with_overrides(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None
+                              ) -> tuple[argparse.Namespace, list[str]]:
+  """``(parser's arguments, --config.KEY=VALUE overrides)`` of ``argv`` (default: sys.argv):
+  the scripts' (benchmarks, experiments) way to take overrides like the ``wmjax`` commands."""
+  overrides, rest = split_overrides(sys.argv[1:] if argv is None else argv)
+  if not parser.epilog:
+    parser.epilog = OVERRIDES_HELP
+  return parser.parse_args(rest), overrides
+
+
+def _set(tree: dict, key: str, value: Any) -> None:
+  parts = key.split(".")
+  node = tree
+  for i, part in enumerate(parts[:-1]):
+    child = node.get(part)
+    if child is None:
+      child = node[part] = {}
+    elif not isinstance(child, dict):
+      raise ConfigError(f"cannot set {key!r}: {'.'.join(parts[:i + 1])} is a value "
+                        f"({child!r}), not a section")
+    node = child
+  node[parts[-1]] = value
+
+
+def apply_overrides(config: Mapping | ml_collections.ConfigDict, overrides: Sequence[str],
+                    strict: bool = True) -> ml_collections.ConfigDict:
+  """``config`` with ``KEY=VALUE`` overrides (``--config.`` prefix optional; values are Python
+  literals, strings may be bare), checked and completed (:func:`complete_config`): an unknown key
+  names the nearest valid ones, a value of the wrong type the type wanted. Returns a new config.
+  ``strict=False`` (a saved config) keeps keys the schema does not know.
+  """
+  tree = _plain(config)
+  tree = dict(tree) if isinstance(tree, Mapping) else tree
+  for item in overrides:
+    key, sep, value = item.partition("=")
+    if not sep:
+      raise ConfigError(f"override must be KEY=VALUE, got {item!r}")
+    key = key.strip().removeprefix(OVERRIDE_PREFIX).removeprefix("config.")
+    if not key or any(not part for part in key.split(".")):
+      raise ConfigError(f"override {item!r} names no key")
+    _set(tree, key, _Text(value))
+  return complete_config(tree, strict)
 
 
 def load_config(spec: str, overrides: Sequence[str] = ()) -> ml_collections.ConfigDict:
-  """Run ``get_config(arg)`` of the file in ``spec`` (``file.py`` or ``file.py:arg``).
-
-  ``overrides`` are ``dotted.key=value`` strings; values are Python literals (strings may be
-  bare). An unknown key (with the nearest known one) or a value of the wrong type raises
-  ValueError.
-  """
+  """Run ``get_config(arg)`` of the file in ``spec`` (``file.py`` or ``file.py:arg``), apply
+  ``overrides`` (:func:`apply_overrides`) and check the result against the schema
+  (:func:`complete_config`): unknown keys, in the file or an override, and wrong types raise
+  :class:`ConfigError`."""
   path, _, arg = spec.partition(":")
   if not os.path.isfile(path):
     raise ConfigError(f"config file not found: {path!r}")
@@ -40,62 +529,7 @@ def load_config(spec: str, overrides: Sequence[str] = ()) -> ml_collections.Conf
   if not hasattr(module, "get_config"):
     raise ConfigError(f"{path} defines no get_config()")
   config = module.get_config(arg) if arg else module.get_config()
-  return apply_overrides(config, overrides)
-
-
-def _check_key(config: ml_collections.ConfigDict, key: str) -> None:
-  """ValueError for a key the config does not have, with the nearest known name."""
-  node, parts = config, key.split(".")
-  for i, part in enumerate(parts):
-    if not isinstance(node, ml_collections.ConfigDict) or part not in node:
-      where = ".".join(parts[:i])
-      known = sorted(node.keys()) if isinstance(node, ml_collections.ConfigDict) else []
-      close = difflib.get_close_matches(part, known, n=1)
-      hint = (f"; did you mean {where + '.' if where else ''}{close[0]}?" if close else
-              f"; {where or 'the config'} has {known}" if known else
-              f"; {where} is not a section")
-      raise ConfigError(f"unknown config key {key!r}{hint}")
-    node = node[part]
-
-
-def apply_overrides(config: ml_collections.ConfigDict, overrides: Sequence[str]
-                    ) -> ml_collections.ConfigDict:
-  """Apply ``dotted.key=value`` overrides in place (see :func:`load_config`); returns ``config``."""
-  for item in overrides:
-    key, sep, value = item.partition("=")
-    if not sep:
-      raise ConfigError(f"override must be key=value, got {item!r}")
-    key = key.strip().removeprefix("--config.").removeprefix("config.")
-    _check_key(config, key)
-    try:
-      config.update_from_flattened_dict({key: _parse_value(value)})
-    except (KeyError, AttributeError, TypeError) as e:
-      raise ConfigError(f"cannot apply override {item!r}: {e}") from e
-  return config
-
-
-def _dataclass_config(cls, skip: Sequence[str], overrides: dict) -> ml_collections.ConfigDict:
-  fields = {f.name: f.default for f in dataclasses.fields(cls) if f.name not in skip}
-  unknown = set(overrides) - set(fields)
-  if unknown:
-    raise ValueError(f"unknown {cls.__name__} fields {sorted(unknown)}; known: {sorted(fields)}")
-  fields.update(overrides)
-  return ml_collections.ConfigDict(fields)
-
-
-def model_config(**overrides) -> ml_collections.ConfigDict:
-  """Every :class:`wmjax.nn.STDiT` field with its default, updated by ``overrides``."""
-  from wmjax.nn.dit import STDiT
-  return _dataclass_config(STDiT, ("parent", "name"), overrides)
-
-
-def sampling_config(**overrides) -> ml_collections.ConfigDict:
-  """Every :class:`wmjax.diffusion.SamplerConfig` field with its default, updated by ``overrides``."""
-  from wmjax.diffusion.sampling import SamplerConfig
-  return _dataclass_config(SamplerConfig, (), overrides)
-
-
-def optim_config(**overrides) -> ml_collections.ConfigDict:
-  """Every :class:`wmjax.train.state.OptimConfig` field with its default, updated by ``overrides``."""
-  from wmjax.train.state import OptimConfig
-  return _dataclass_config(OptimConfig, (), overrides)
+  try:
+    return apply_overrides(config, overrides)
+  except ConfigError as e:
+    raise ConfigError(f"{spec}: {e}") from None

@@ -16,7 +16,7 @@ import ml_collections
 import orbax.checkpoint as ocp
 
 from wmjax.codecs import Codec, make_codec
-from wmjax.config import apply_overrides, model_config, sampling_config
+from wmjax.config import apply_overrides
 from wmjax.data.stats import ActionStats
 from wmjax.diffusion import objectives
 from wmjax.diffusion.sampling import (DenoiseFn, SamplerConfig, classifier_free_guidance,
@@ -46,8 +46,7 @@ class WorldModel:
   def from_config(cls, config: ml_collections.ConfigDict) -> "WorldModel":
     """From a config with ``model`` (STDiT fields), ``diffusion`` and ``sampling`` sections."""
     d = config.diffusion
-    process = objectives.make_process(d.kind, d.get("schedule", "linear"), d.num_timesteps,
-                                      d.get("prediction", "eps"))
+    process = objectives.make_process(d.kind, d.schedule, d.num_timesteps, d.prediction)
     sampler = SamplerConfig(**config.sampling.to_dict())
     if sampler.sampler not in process.samplers:
       raise ValueError(f"sampling.sampler={sampler.sampler!r} does not fit diffusion.kind="
@@ -175,11 +174,9 @@ def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
 
     config = ml_collections.ConfigDict(read("config", dict(config=ocp.args.JsonRestore())).config)
     stats = read("action_stats", dict(action_stats=ocp.args.JsonRestore())).action_stats
-    # A checkpoint written before a model or sampling field existed gets its default, which an
-    # override may then change (e.g. sampling.kv_cache).
-    config.model = model_config(**config.model.to_dict())
-    config.sampling = sampling_config(**config.sampling.to_dict())
-    config = apply_overrides(config, overrides)
+    # A checkpoint written before a config key existed gets its default (the schema in
+    # wmjax.config), which an override may then change (e.g. sampling.kv_cache).
+    config = apply_overrides(config, overrides, strict=False)
     world_model = WorldModel.from_config(config)
     frame_shape = tuple(config.frame_shape)
     abstract = nn.unbox(jax.eval_shape(
@@ -195,4 +192,4 @@ def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
   weights = jax.tree.map(lambda p: p.astype(param_dtype), restored.state[key])
   return LoadedModel(config, world_model, weights,
                      ActionStats.from_dict(stats), int(step),
-                     make_codec(config.get("codec")))
+                     make_codec(config.codec))

@@ -7,7 +7,7 @@ mean ± standard error of the square error, square IoU, one-component fraction a
 model and of copying the last frame. ``table`` prints the rows as Markdown.
 
     python experiments/gridworld/ablate.py run base --workdir_root /tmp/ablate
-    python experiments/gridworld/ablate.py run mse --workdir_root /tmp/ablate -- \\
+    python experiments/gridworld/ablate.py run mse --workdir_root /tmp/ablate \\
         --config.diffusion.kind=regression --config.diffusion.regime=irasim \\
         --config.sampling.sampler=euler --config.sampling.num_steps=1 \\
         --config.sampling.context_level=0.0
@@ -24,6 +24,8 @@ import shlex
 import subprocess
 import sys
 import time
+
+from wmjax.config import parse_args_with_overrides
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 RESULTS = os.path.join(HERE, "results")
@@ -115,12 +117,12 @@ def main(argv=None) -> int:
   rec.add_argument("--train_command", required=True, help="the command that trained it")
   rec.add_argument("--train_s", type=float, required=True, help="its training wall time")
   sub.add_parser("table", help="print the rows as Markdown")
-  args, overrides = parser.parse_known_args(argv)
-  # after `--`: --config.KEY=VALUE overrides (for `record`: today's equivalent of its config)
-  args.overrides = [o for o in overrides if o != "--"]
-  unknown = [o for o in args.overrides if not o.startswith("--config.")]
-  if unknown or (args.overrides and args.command == "table"):
-    parser.error(f"expected --config.KEY=VALUE overrides, got {unknown or args.overrides}")
+  # --config.KEY=VALUE overrides, as for `wmjax train` (for `record`: today's equivalent of its
+  # config); an earlier `--` before them is still accepted
+  args, args.overrides = parse_args_with_overrides(
+      parser, [a for a in (sys.argv[1:] if argv is None else argv) if a != "--"])
+  if args.overrides and args.command == "table":
+    parser.error(f"table takes no overrides, got {args.overrides}")
   if args.command == "table":
     print(table())
     return 0

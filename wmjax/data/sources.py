@@ -285,19 +285,17 @@ def dataset_dir(data: ml_collections.ConfigDict) -> str:
 
 
 def member_configs(data: ml_collections.ConfigDict) -> list[ml_collections.ConfigDict]:
-  """``config.data`` itself, or one config per ``data.mixture`` entry (a member inherits the rest
-  of ``config.data``)."""
-  mixture = data.get("mixture")
-  if not mixture:
+  """``config.data`` itself, or one config per ``data.mixture`` entry (a member inherits what its
+  entry leaves None from ``config.data``)."""
+  if not data.mixture:
     return [data]
   # a dataset's own reading (spec, camera) is not inherited by the others
   base = {k: v for k, v in data.to_dict().items() if k not in ("mixture", "spec", "image_key")}
   members = []
-  for name, entry in mixture.items():
-    member = ml_collections.ConfigDict(dict(base, dataset=name, builder_dir="", latents_dir="",
-                                            weight=1.0))
-    member.update(entry.to_dict())
-    members.append(member)
+  for name, entry in data.mixture.items():
+    own = {k: v for k, v in entry.to_dict().items() if v is not None}
+    members.append(ml_collections.ConfigDict(dict(base, dataset=name, **own),
+                                             type_safe=False))
   return members
 
 
@@ -316,11 +314,11 @@ class ConfiguredDataset:
 
   def train_stats(self) -> ActionStats:
     """The action statistics of the training split (what the model normalises with)."""
-    return action_stats(self.builder_dir, self.data.get("train_split", "train"), self.specs)
+    return action_stats(self.builder_dir, self.data.train_split, self.specs)
 
   def resolution(self, spec: oxe.DatasetSpec) -> tuple[int, int]:
     """``(H, W)`` the frames are read at: ``data.resolution``, else the spec's own."""
-    return tuple(self.data.get("resolution") or spec.resolution)
+    return tuple(self.data.resolution or spec.resolution)
 
 
 def open_dataset(data: ml_collections.ConfigDict) -> ConfiguredDataset:

@@ -3,9 +3,10 @@ as RGB frames encoded by the codec on the device or as pre-encoded latents.
 
 ``config.data`` names one dataset (``dataset``, ``builder_dir`` or the generated gridworld,
 ``latents_dir``; ``spec`` / ``image_key`` / ``resize`` to read it, see
-:func:`wmjax.data.oxe.specs_from_config`) or, with ``mixture``, several: ``mixture.<dataset> =
-{builder_dir, weight, latents_dir, spec, image_key}`` entries that inherit the rest of
-``config.data`` (frames, strides, resolution, resize, normalisation). Each member is normalised
+:func:`wmjax.data.oxe.specs_from_config`) or, with ``mixture``, several: ``mixture.<dataset>``
+entries (schema :class:`wmjax.config.MixtureMember`: builder_dir, weight, latents_dir, splits,
+spec, image_key, ...) whose fields left None inherit ``config.data`` (frames, strides,
+resolution, resize, normalisation). Each member is normalised
 with its own action statistics and its actions are zero-padded to ``model.action_dim``.
 """
 
@@ -55,15 +56,15 @@ class TrainData:
 
 def _open_latents(data: ml_collections.ConfigDict, config: ml_collections.ConfigDict):
   directory = os.path.expanduser(data.latents_dir)
-  train_episodes = LatentEpisodes(directory, data.get("train_split", "train"))
+  train_episodes = LatentEpisodes(directory, data.train_split)
   meta = train_episodes.metadata
-  if meta["codec"] != codec_description(config.get("codec")):
+  if meta["codec"] != codec_description(config.codec):
     raise ValueError(f"{directory} was encoded with codec {meta['codec']}, but config.codec is "
-                     f"{codec_description(config.get('codec'))}")
+                     f"{codec_description(config.codec)}")
   if tuple(meta["latent_shape"]) != tuple(config.frame_shape):
     raise ValueError(f"{directory} holds latents of shape {tuple(meta['latent_shape'])}, but "
                      f"frame_shape is {tuple(config.frame_shape)}")
-  eval_episodes = LatentEpisodes(directory, data.get("eval_split", "test"))
+  eval_episodes = LatentEpisodes(directory, data.eval_split)
   return (train_episodes, eval_episodes, ActionStats.from_dict(meta["action_stats"]),
           tuple(meta["resolution"]))
 
@@ -71,12 +72,12 @@ def _open_latents(data: ml_collections.ConfigDict, config: ml_collections.Config
 def _open_frames(data: ml_collections.ConfigDict, config: ml_collections.ConfigDict,
                  codec: Codec):
   dataset = open_dataset(data)
-  train_episodes = dataset.split(data.get("train_split", "train"))
-  eval_episodes = dataset.split(data.get("eval_split", "test"))
+  train_episodes = dataset.split(data.train_split)
+  eval_episodes = dataset.split(data.eval_split)
   resolution = dataset.resolution(train_episodes.spec)
   if tuple(config.frame_shape) != codec.latent_shape(resolution + (3,)):
     raise ValueError(f"frame_shape {tuple(config.frame_shape)} does not match what the codec "
-                     f"({config.get('codec', {}).get('kind', 'pixel')}) makes of "
+                     f"({config.codec.kind}) makes of "
                      f"{data.dataset}'s {resolution + (3,)} frames: "
                      f"{codec.latent_shape(resolution + (3,))}")
   return train_episodes, eval_episodes, dataset.train_stats(), resolution
@@ -85,19 +86,19 @@ def _open_frames(data: ml_collections.ConfigDict, config: ml_collections.ConfigD
 def build_data(config: ml_collections.ConfigDict) -> TrainData:
   """Window sources and action statistics of every member, checked against the model before
   anything compiles."""
-  codec = make_codec(config.get("codec"))
+  codec = make_codec(config.codec)
   frames = config.data.frames
   if frames > config.model.num_frames:
     raise ValueError(f"data.frames={frames} exceeds model.num_frames={config.model.num_frames}")
   members, kinds = [], set()
   for data in member_configs(config.data):
-    latents = bool(data.get("latents_dir"))
+    latents = bool(data.latents_dir)
     kinds.add(latents)
     train_episodes, eval_episodes, stats, resolution = (
         _open_latents(data, config) if latents else _open_frames(data, config, codec))
     spec = train_episodes.spec
     # a mixture zero-pads smaller action spaces; a single dataset must match exactly
-    mixture = bool(config.data.get("mixture"))
+    mixture = bool(config.data.mixture)
     if spec.action_dim > config.model.action_dim or (
         not mixture and spec.action_dim != config.model.action_dim):
       raise ValueError(f"{spec.name} has {spec.action_dim}-dim actions but the model expects "
@@ -105,7 +106,7 @@ def build_data(config: ml_collections.ConfigDict) -> TrainData:
     members.append(Member(spec, stats,
                           WindowSource(train_episodes, frames, data.train_stride, resolution),
                           WindowSource(eval_episodes, frames, data.eval_stride, resolution),
-                          float(data.get("weight", 1.0))))
+                          float(data.get("weight", 1.0))))  # a mixture member's
   if len(kinds) > 1:
     raise ValueError("a mixture must be all pre-encoded latents or all frames")
   return TrainData(members, codec, kinds.pop())

@@ -240,8 +240,8 @@ def fit_ladder(config: ml_collections.ConfigDict, batch: int, data_parallel: int
                ) -> list[tuple[str, int]]:
   """(remat, grad_accum) settings from the config's own upward: more remat first, then more
   micro-batches with full remat (as long as each device keeps at least one sample)."""
-  remat = config.model.get("remat", "none")
-  accum = int(config.optim.get("grad_accum", 1))
+  remat = config.model.remat
+  accum = config.optim.grad_accum
   start = REMAT_LADDER.index(remat) if remat in REMAT_LADDER else 0
   ladder = [(r, accum) for r in REMAT_LADDER[start:]]
   k = accum * 2
@@ -328,7 +328,7 @@ def fit_for_training(config: ml_collections.ConfigDict, log=print
   set and on CPU) and, with ``train.auto_fit``, climb :func:`fit_ladder` until it fits ->
   (config as trained, trainer with the step compiled, report). Without a known limit (CPU and no
   budget) the config is kept as it is. :class:`DoesNotFitError` when the step cannot fit."""
-  budget = config.train.get("memory_budget_gib")
+  budget = config.train.memory_budget_gib
   target = parse_target("local")
   limit = int(budget * GIB) if budget else usable_memory(target)
   first = compile_step(config, target, budget_bytes=limit)
@@ -338,7 +338,7 @@ def fit_for_training(config: ml_collections.ConfigDict, log=print
         + ("; no memory limit known here (set train.memory_budget_gib to check one)"
            if report["fits"] is None else ""))
     return config, first[0], report
-  if not config.train.get("auto_fit", True):
+  if not config.train.auto_fit:
     raise DoesNotFitError(f"the compiled step does not fit: {describe(report)}; set "
                           f"train.auto_fit=True to choose remat and gradient accumulation, or "
                           f"lower batch_size")

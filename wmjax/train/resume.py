@@ -45,18 +45,13 @@ def flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
 
 
 def _with_defaults(saved: dict) -> dict:
-  """A saved config with the model / sampling / optimiser fields added since it was written set
-  to their defaults (so that a new field is not a change)."""
-  from wmjax.config import model_config, optim_config, sampling_config
-  saved = dict(saved)
-  for section, make in (("model", model_config), ("sampling", sampling_config),
-                        ("optim", optim_config)):
-    if isinstance(saved.get(section), dict):
-      try:
-        saved[section] = json.loads(make(**saved[section]).to_json())
-      except ValueError:  # a field since removed: compare as saved
-        pass
-  return saved
+  """A saved config with the keys added since it was written at their defaults (so that a new
+  key is not a change); keys since removed are compared as saved."""
+  from wmjax.config import ConfigError, complete_config
+  try:
+    return json.loads(complete_config(saved, strict=False).to_json())
+  except ConfigError:  # a section whose shape has changed: compare as saved
+    return dict(saved)
 
 
 def config_changes(saved: dict, requested: ml_collections.ConfigDict | dict

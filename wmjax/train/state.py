@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import flax
@@ -11,23 +10,9 @@ import jax.numpy as jnp
 import ml_collections
 import optax
 
+from wmjax.config import OptimConfig  # noqa: F401  (the schema of config.optim; re-exported)
+
 SCHEDULES = ("constant", "warmup", "cosine")
-
-
-@dataclasses.dataclass(frozen=True)
-class OptimConfig:
-  """The fields of ``config.optim``; defaults are IRASim's recipe (paper table 10)."""
-
-  learning_rate: float = 1e-4
-  schedule: str = "constant"  # 'constant' | 'warmup' (linear, then constant) | 'cosine'
-  warmup_steps: int = 0
-  total_steps: int = 300_000  # cosine decay length
-  b1: float = 0.9
-  b2: float = 0.999
-  weight_decay: float = 0.0
-  grad_clip: float = 0.1  # global norm; 0 disables
-  ema_decay: float = 0.9999
-  grad_accum: int = 1  # micro-batches the global batch is cut into inside one step
 
 
 @flax.struct.dataclass
@@ -40,7 +25,7 @@ class TrainState:
 
 
 def learning_rate_schedule(optim: ml_collections.ConfigDict) -> optax.Schedule:
-  lr, warmup = optim.learning_rate, optim.get("warmup_steps", 0)
+  lr, warmup = optim.learning_rate, optim.warmup_steps
   if optim.schedule == "constant":
     return optax.constant_schedule(lr)
   if optim.schedule == "warmup":

@@ -37,7 +37,7 @@ def make_train_step(world_model: WorldModel, config: ml_collections.ConfigDict,
   """
   net, process, diffusion = world_model.network, world_model.process, config.diffusion
   schedule = learning_rate_schedule(config.optim)
-  micro = int(config.optim.get("grad_accum", 1))
+  micro = config.optim.grad_accum
 
   def step(state: TrainState, frames: jax.Array, actions: jax.Array):
     key = jax.random.fold_in(jax.random.wrap_key_data(state.rng), state.step)
@@ -112,7 +112,7 @@ class ShardedTrainer:
   def __init__(self, world_model: WorldModel, config: ml_collections.ConfigDict, mesh: Mesh,
                frame_shape: tuple[int, int, int], frames: int):
     self.world_model, self.mesh = world_model, mesh
-    self.micro_batches = int(config.optim.get("grad_accum", 1))
+    self.micro_batches = config.optim.grad_accum
     self.tx = make_optimizer(config.optim)
 
     def init(rng):

@@ -25,16 +25,15 @@ from wmjax.env import RewardFn, WorldModelEnv
 from wmjax.eval import planning, policy_eval
 from wmjax.eval.video import comparison, stack_rows, write_video
 from wmjax.tasks.pusht import simulator as pusht
-from wmjax.tasks.pusht.dataset import INSTRUCTION
+from wmjax.tasks.pusht.dataset import INSTRUCTION, PushTConfig
 
 
 
 def initial_states(config, episodes: int, seed: int) -> np.ndarray:
   """``[episodes, 5]`` simulator states drawn like the config's training data."""
-  data = config.data.get("pusht", {})
+  params = PushTConfig.from_dict(config.data.get("pusht") or {})  # defaults where not Push-T
   return pusht.random_initial_states(np.random.default_rng(seed), episodes,
-                                     max_offset=data.get("max_offset", 90.0),
-                                     max_angle=data.get("max_angle", 0.5))
+                                     max_offset=params.max_offset, max_angle=params.max_angle)
 
 
 def _image_size(model) -> int:

@@ -1,0 +1,137 @@
+"""Config schemas (wmjax.config): unknown keys and wrong types fail at load time naming the
+nearest valid keys, defaults live in the schema, old saved configs load, one override syntax."""
+
+import argparse
+import glob
+import json
+import os
+import pathlib
+
+import pytest
+
+from wmjax import config as config_lib
+from wmjax.config import ConfigError, apply_overrides, complete_config, load_config
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+GRIDWORLD = str(ROOT / "configs" / "gridworld.py")
+
+
+@pytest.mark.unit
+def test_a_misspelt_override_names_the_key_meant():
+  with pytest.raises(ConfigError, match=r"unknown config key 'train.num_stepz'; did you mean "
+                                        r"train.num_steps\?"):
+    load_config(GRIDWORLD, ["train.num_stepz=3"])
+  # the issue's second case: a misspelt builder_dir no longer falls back to the default
+  with pytest.raises(ConfigError, match=r"'data.bulder_dir'; did you mean data.builder_dir\?"):
+    load_config(str(ROOT / "configs" / "rt1.py:S"), ["--config.data.bulder_dir=/data/rt1"])
+  with pytest.raises(ConfigError, match=r"'data.gridworld.num_sqares'; did you mean "
+                                        r"data.gridworld.num_squares\?"):
+    load_config(GRIDWORLD, ["data.gridworld.num_sqares=3"])
+  with pytest.raises(ConfigError, match=r"'optimizer'; did you mean optim\?"):
+    load_config(GRIDWORLD, ["optimizer.learning_rate=3"])
+  with pytest.raises(ConfigError, match=r"'xyz'; the config has batch_size, codec, data"):
+    load_config(GRIDWORLD, ["xyz=3"])
+
+
+@pytest.mark.integration
+def test_the_cli_refuses_a_misspelt_override_before_any_work(tmp_path, capsys):
+  from wmjax.cli import main
+  assert main(["train", "--config", GRIDWORLD, "--workdir", str(tmp_path / "run"),
+               "--config.train.num_stepz=3"]) == 2
+  assert "did you mean train.num_steps?" in capsys.readouterr().err
+  assert not os.path.exists(tmp_path / "run" / "checkpoints")
+
+
+@pytest.mark.unit
+def test_wrong_types_fail_and_values_take_the_schema_type():
+  with pytest.raises(ConfigError, match=r"'train.num_steps' must be int, got abc$"):
+    load_config(GRIDWORLD, ["train.num_steps=abc"])
+  with pytest.raises(ConfigError, match=r"'sampling.kv_cache' must be bool, got 1"):
+    load_config(GRIDWORLD, ["sampling.kv_cache=1"])
+  with pytest.raises(ConfigError, match=r"'frame_shape' must be a tuple \(int, int, int\)"):
+    load_config(GRIDWORLD, ["frame_shape=(16,16)"])
+  config = load_config(GRIDWORLD, ["optim.learning_rate=1", "train.memory_budget_gib=3",
+                                   "name=123", "mesh=[1,-1,1]", "model.dtype=bfloat16",
+                                   "model.attention_impl=None", "data.builder_dir=/x"])
+  assert config.optim.learning_rate == 1.0 and isinstance(config.optim.learning_rate, float)
+  assert config.train.memory_budget_gib == 3.0
+  assert config.name == "123"  # a str key keeps the text
+  assert config.mesh == (1, -1, 1) and config.model.dtype == "bfloat16"
+  assert config.model.attention_impl is None and config.data.builder_dir == "/x"
+
+
+@pytest.mark.unit
+def test_a_config_file_is_checked_when_it_loads(tmp_path):
+  path = tmp_path / "typo.py"
+  path.write_text(
+      "from wmjax.config import load_config\n"
+      f"def get_config():\n"
+      f"  config = load_config({GRIDWORLD!r})\n"
+      f"  config.train.unlock()\n"
+      f"  config.train.num_stepz = 3\n"
+      f"  return config\n")
+  with pytest.raises(ConfigError, match=r"typo.py: unknown config key 'train.num_stepz'"):
+    load_config(str(path))
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("path", sorted(glob.glob(str(ROOT / "configs" / "*.py"))),
+                         ids=os.path.basename)
+def test_every_config_file_loads_complete_and_round_trips(path):
+  config = load_config(path)
+  for section in ("codec", "data", "model", "diffusion", "sampling", "rollout", "optim",
+                  "train"):
+    assert section in config
+  assert config.data.train_split and config.data.eval_split
+  saved = json.loads(config.to_json())  # what a workdir stores
+  assert json.loads(complete_config(saved).to_json()) == saved
+
+
+@pytest.mark.unit
+def test_a_config_saved_by_an_older_version_loads_with_defaults():
+  saved = json.loads(load_config(GRIDWORLD).to_json())
+  for section, key in (("data", "train_split"), ("data", "eval_split"), ("sampling", "kv_cache"),
+                       ("optim", "grad_accum"), ("train", "auto_fit"), ("model", "remat")):
+    del saved[section][key]
+  del saved["data"]["gridworld"]["snap_to_pixels"]
+  del saved["rollout"], saved["codec"]
+  saved["model"]["since_removed"] = 1
+  with pytest.raises(ConfigError, match="since_removed"):
+    complete_config(saved)
+  config = complete_config(saved, strict=False)
+  assert config.data.train_split == "train" and config.data.eval_split == "test"
+  assert config.sampling.kv_cache is False and config.optim.grad_accum == 1
+  assert config.train.auto_fit is True and config.model.remat == "none"
+  assert config.rollout.to_dict() == {"context": 1, "horizon": 15}
+  assert config.codec.kind == "pixel"
+  # the gridworld's own convention: positions before snap_to_pixels existed were sub-pixel
+  assert config.data.gridworld.snap_to_pixels is False
+  assert config.model.since_removed == 1
+  # and overrides apply to it like to a config file
+  assert apply_overrides(saved, ["sampling.num_steps=4"], strict=False).sampling.num_steps == 4
+
+
+@pytest.mark.unit
+def test_section_helpers_check_fields():
+  assert config_lib.optim_config().grad_clip == config_lib.OptimConfig().grad_clip
+  with pytest.raises(ConfigError, match=r"'model.hiden_size'; did you mean model.hidden_size"):
+    config_lib.model_config(hiden_size=3)
+  mixture = load_config(str(ROOT / "configs" / "wpe.py")).data.mixture
+  assert mixture.bridge.train_split == "train" and mixture.bridge.frame_step is None
+
+
+@pytest.mark.unit
+def test_one_override_syntax_for_scripts():
+  parser = argparse.ArgumentParser()
+  parser.add_argument("--config")
+  parser.add_argument("--batch", type=int)
+  args, overrides = config_lib.parse_args_with_overrides(
+      parser, ["--config", GRIDWORLD, "--config.train.num_steps=3", "--batch", "2",
+               "--config.mesh=(1,-1,1)"])
+  assert args.config == GRIDWORLD and args.batch == 2
+  assert overrides == ["--config.train.num_steps=3", "--config.mesh=(1,-1,1)"]
+  assert load_config(args.config, overrides).mesh == (1, -1, 1)
+  with pytest.raises(ConfigError, match="has no value"):
+    config_lib.split_overrides(["--config.train.num_steps"])
+  with pytest.raises(SystemExit):  # the old --set is gone
+    config_lib.parse_args_with_overrides(parser, ["--set", "train.num_steps=3"])
