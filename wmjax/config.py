@@ -114,13 +114,11 @@ class DataConfig:
 
   @staticmethod
   def extra_sections() -> dict[str, type]:
-    """``data.<name>`` sections beyond the fields: each generated dataset's parameters (the
-    tasks register their datasets when :mod:`wmjax.tasks` is imported)."""
-    if importlib.util.find_spec("wmjax.tasks") is not None:
-      importlib.import_module("wmjax.tasks")
-    from wmjax import tasks  # noqa: F401  (its tasks register their generated datasets)
-    from wmjax.data.sources import GENERATED
-    return {name: entry[0] for name, entry in GENERATED.items()}
+    """``data.<name>`` sections beyond the fields: the parameters of each generated dataset
+    registered in this process (:func:`wmjax.data.sources.register_generated`; importing
+    :mod:`wmjax.tasks`, as the gridworld and Push-T config files do, registers them)."""
+    sources = sys.modules.get("wmjax.data.sources")  # nothing is registered before it loads
+    return {name: entry[0] for name, entry in getattr(sources, "GENERATED", {}).items()}
 
 
 @dataclasses.dataclass(frozen=True)
