@@ -18,6 +18,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+from einops import rearrange
 
 from wmjax.diffusion.sampling import sample_window
 from wmjax.model import Params, WorldModel
@@ -158,8 +159,7 @@ def _rollout(world_model: WorldModel, params: Params, context: jax.Array, action
 
   _, new_frames = jax.lax.scan(body, context.astype(jnp.float32),
                                (block_actions, block_mask, keys))
-  new_frames = jnp.moveaxis(new_frames, 0, 1)  # [B, K, h, ...]
-  new_frames = new_frames.reshape((new_frames.shape[0], num_blocks * h) + new_frames.shape[3:])
+  new_frames = rearrange(new_frames, "k b h ... -> b (k h) ...")  # blocks in order
   return jnp.concatenate([context.astype(jnp.float32), new_frames], axis=1)[:, :num_frames]
 
 

@@ -27,6 +27,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
+from einops import rearrange
 
 from wmjax.nn.attention import attend
 from wmjax.parallel import LOGICAL_RULES, MESH_AXES
@@ -177,19 +178,13 @@ class PatchEmbed(nn.Module):
 
 def patchify(x: jax.Array, p: int) -> jax.Array:
   """``[B, T, H, W, C] -> [B, T, (H/p)*(W/p), p*p*C]``, patches row-major, pixels (py, px, c)."""
-  b, t, h, w, c = x.shape
-  x = x.reshape(b, t, h // p, p, w // p, p, c)
-  x = x.transpose(0, 1, 2, 4, 3, 5, 6)
-  return x.reshape(b, t, (h // p) * (w // p), p * p * c)
+  return rearrange(x, "b t (gh py) (gw px) c -> b t (gh gw) (py px c)", py=p, px=p)
 
 
 def unpatchify(x: jax.Array, grid_h: int, grid_w: int, p: int) -> jax.Array:
   """Inverse of :func:`patchify`: ``[B, T, gh*gw, p*p*C] -> [B, T, gh*p, gw*p, C]``."""
-  b, t, n, d = x.shape
-  c = d // (p * p)
-  x = x.reshape(b, t, grid_h, grid_w, p, p, c)
-  x = x.transpose(0, 1, 2, 4, 3, 5, 6)
-  return x.reshape(b, t, grid_h * p, grid_w * p, c)
+  return rearrange(x, "b t (gh gw) (py px c) -> b t (gh py) (gw px) c", gh=grid_h, gw=grid_w,
+                   py=p, px=p)
 
 
 # --------------------------------------------------------------------------- transformer
@@ -317,10 +312,13 @@ class STBlock(nn.Module):
     if self.axis == "spatial":
       if cache is not None:
         raise ValueError("spatial attention takes no cache: frames attend within themselves")
-      h, kv = attention(h.reshape(b * t, p, d), positions=positions)[0].reshape(b, t, p, d), None
+      # each frame's patches attend to each other: sequences of P tokens
+      h = attention(rearrange(h, "b t p d -> (b t) p d"), positions=positions)[0]
+      h, kv = rearrange(h, "(b t) p d -> b t p d", b=b), None
     elif self.axis == "temporal":
-      h, kv = attention(h.transpose(0, 2, 1, 3).reshape(b * p, t, d), cache)
-      h = h.reshape(b, p, t, d).transpose(0, 2, 1, 3)
+      # each patch position attends across frames: sequences of T tokens
+      h, kv = attention(rearrange(h, "b t p d -> (b p) t d"), cache)
+      h = rearrange(h, "(b p) t d -> b t p d", b=b)
     else:
       raise ValueError(f"axis must be 'spatial' or 'temporal', got {self.axis!r}")
     x = x + gate_a * h
