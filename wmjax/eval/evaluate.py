@@ -70,7 +70,7 @@ def evaluate_checkpoint(workdir: str, *, split: str, out: str | None = None,
       task=task)
   out = out or os.path.join(workdir, "eval", f"{split}-step{model.step}")
   os.makedirs(out, exist_ok=True)
-  header = (f"# wmjax evaluate: {config.get('name', '')} step {model.step} ({params} parameters), "
+  header = (f"# wmjax evaluate: {config.name} step {model.step} ({params} parameters), "
             f"split {split!r}, {data.dataset}")
   results = dict(results, workdir=os.path.abspath(workdir), step=model.step, split=split,
                  params=params, sampler=config.sampling.to_dict())

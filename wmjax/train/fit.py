@@ -345,6 +345,6 @@ def fit_for_training(config: ml_collections.ConfigDict, log=print
   fitted, trainer, report = fit_step(config, target, limit, first=first, log=log)
   log(f"auto_fit chose model.remat={report['remat']!r} optim.grad_accum={report['grad_accum']}: "
       f"{report['total_gib']:.3g} GiB per device of {report['limit_gib']:.3g} (the config's "
-      f"remat={config.model.remat!r} grad_accum={int(config.optim.get('grad_accum', 1))} needs "
+      f"remat={config.model.remat!r} grad_accum={config.optim.grad_accum} needs "
       f"{first[2]['total_gib']:.3g})")
   return fitted, trainer, report
