@@ -1,8 +1,9 @@
 """Device meshes, logical-axis sharding rules and global batches.
 
 Parameters carry logical axis names (``wmjax.nn.layers``); :data:`LOGICAL_RULES` maps them onto
-the ``('data', 'fsdp', 'tensor')`` mesh. Batches are sharded over the batch mesh axes ``('data', 'fsdp')``: each process feeds its own
-slice and :func:`global_batch` assembles the slices into global ``jax.Array``s.
+the ``('data', 'fsdp', 'tensor')`` mesh. Batches are sharded over the batch mesh axes
+``('data', 'fsdp')``: each process feeds its own slice and :func:`global_batch` assembles the
+slices into global ``jax.Array``s.
 """
 
 from __future__ import annotations

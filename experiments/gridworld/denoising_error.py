@@ -21,7 +21,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmjax.diffusion import GaussianDiffusion
-from wmjax.eval import metrics
 from wmjax.model import load_model
 from wmjax.tasks.gridworld import dataset as gridworld
 from wmjax.tasks.gridworld import metrics as gridworld_metrics

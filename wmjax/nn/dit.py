@@ -56,9 +56,9 @@ POSITIONS = ("sincos", "rope")
 class LayerStack(nn.Module):
   """``num_layers`` spatial+temporal layers, scanned (stacked params, fast compiles) or unrolled.
 
-  ``x [B, T, P, D]``, ``patch_positions [P, 2]`` -> ``(x', kv)``. ``cache`` holds every layer's temporal keys and values of
-  ``Tc`` earlier frames (``[layers, B*P, Tc, H, d]`` each); with ``return_kv`` ``kv`` is the same
-  for ``x``'s frames, else None.
+  ``x [B, T, P, D]``, ``patch_positions [P, 2]`` -> ``(x', kv)``. ``cache`` holds every layer's
+  temporal keys and values of ``Tc`` earlier frames (``[layers, B*P, Tc, H, d]`` each); with
+  ``return_kv`` ``kv`` is the same for ``x``'s frames, else None.
   """
 
   num_layers: int

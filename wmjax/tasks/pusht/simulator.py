@@ -136,7 +136,8 @@ class PushPolicy:
   (seen from the goal) it pushes through the block's centre towards the goal's; otherwise it
   walks to the push point ``standoff`` px behind the block, around the block's side when it is
   in front, aiming ``lead`` times as far as the waypoint (at most ``max_lead`` px) since the PD
-  controller covers only part of the way per step. It stops within ``tolerance`` px. ``noise``: action noise standard deviation in units of the 512-px workspace.
+  controller covers only part of the way per step. It stops within ``tolerance`` px. ``noise``:
+  action noise standard deviation in units of the 512-px workspace.
   ``chunk``: actions per call (the same target, re-noised per step).
   """
 
