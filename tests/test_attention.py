@@ -10,6 +10,8 @@ from conftest import tiny_world_model
 from wmjax.nn import attention
 from wmjax.nn.attention import attend, prefix_causal_mask, resolve_backend
 
+pytestmark = pytest.mark.unit
+
 ON_GPU = jax.default_backend() == "gpu"
 
 

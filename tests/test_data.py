@@ -40,6 +40,7 @@ def grid(tmp_path_factory):
   return gridworld.prepare(str(tmp_path_factory.mktemp("grid")), config), config
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("name", sorted(oxe_fixtures.FEATURES))
 def test_both_read_paths_yield_identical_windows(oxe_data, name):
   tfrecord_dir, array_record_dir = oxe_data[name]
@@ -63,6 +64,7 @@ def test_both_read_paths_yield_identical_windows(oxe_data, name):
       oxe_fixtures.INSTRUCTIONS[2].encode()]
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("name", sorted(oxe_fixtures.FEATURES))
 def test_window_actions_are_the_standardised_raw_actions(oxe_data, name):
   """Windows carry exactly the raw published actions, concatenated into the IRASim space."""
@@ -83,6 +85,7 @@ def test_window_actions_are_the_standardised_raw_actions(oxe_data, name):
     np.testing.assert_array_equal(window["actions"][j], np.asarray(expected, np.float32))
 
 
+@pytest.mark.unit
 def test_standardisation_by_hand():
   rt1 = oxe.SPECS["fractal20220817_data"][0]
   steps = {"action": {"world_vector": np.array([[1, 2, 3]]), "rotation_delta": np.array([[4, 5, 6]]),
@@ -102,6 +105,7 @@ def test_standardisation_by_hand():
   assert oxe.decode_instruction(b"pick") == "pick"
 
 
+@pytest.mark.integration
 def test_missing_key_error_lists_expected_and_found(oxe_data):
   features = tfds.builder_from_directory(oxe_data["bridge_dataset"][1]).info.features
   with pytest.raises(ValueError) as error:
@@ -117,6 +121,7 @@ def test_missing_key_error_lists_expected_and_found(oxe_data):
   assert oxe.resolve_spec("bridge_dataset", old).layout == "oxe"
 
 
+@pytest.mark.integration
 def test_converted_equals_written_by_tfds_as_array_record(oxe_data, tmp_path):
   written = oxe_fixtures.build("language_table", str(tmp_path), file_format="array_record")
   a = ArrayRecordEpisodes(written, "train")
@@ -128,6 +133,7 @@ def test_converted_equals_written_by_tfds_as_array_record(oxe_data, tmp_path):
     np.testing.assert_array_equal(ea.actions, eb.actions)
 
 
+@pytest.mark.integration
 def test_worker_processes_yield_the_same_batches(grid):
   builder_dir, _ = grid
   source = WindowSource(ArrayRecordEpisodes(builder_dir, "train"), 6, 1, None)
@@ -140,6 +146,7 @@ def test_worker_processes_yield_the_same_batches(grid):
     np.testing.assert_array_equal(a["actions"], b["actions"])
 
 
+@pytest.mark.integration
 def test_random_access_needs_array_record(oxe_data):
   with pytest.raises(ValueError, match="wmjax data convert"):
     ArrayRecordEpisodes(oxe_data["language_table"][0], "train")
@@ -147,6 +154,7 @@ def test_random_access_needs_array_record(oxe_data):
     convert_to_array_record(oxe_data["language_table"][0], oxe_data["language_table"][1])
 
 
+@pytest.mark.integration
 def test_action_stats_round_trip_and_normalisation(oxe_data, tmp_path):
   stats = action_stats(oxe_data["fractal20220817_data"][1])
   assert stats.gripper_dim == 6 and stats.count == 5 + 3 + 7 - 3  # last step of each episode out
@@ -179,6 +187,7 @@ def _batches(iterator, n):
   return [next(iterator) for _ in range(n)]
 
 
+@pytest.mark.integration
 def test_grain_iterator_state_restores_exactly(grid):
   builder_dir, _ = grid
   source = WindowSource(ArrayRecordEpisodes(builder_dir, "train"), 6, 1, None)
@@ -203,6 +212,7 @@ def test_grain_iterator_state_restores_exactly(grid):
   np.testing.assert_allclose(first["frames"][0], raw["frames"] / 127.5 - 1.0, atol=1e-6)
 
 
+@pytest.mark.integration
 def test_process_shards_are_disjoint_and_cover_the_data(grid):
   builder_dir, _ = grid
   source = WindowSource(ArrayRecordEpisodes(builder_dir, "train"), 6, 3, None)
@@ -218,6 +228,7 @@ def test_process_shards_are_disjoint_and_cover_the_data(grid):
   assert abs(len(seen[0]) - len(seen[2])) <= 1
 
 
+@pytest.mark.integration
 def test_weighted_mixture(grid, tmp_path):
   builder_dir, config = grid
   other = gridworld.prepare(str(tmp_path), gridworld.GridworldConfig(
@@ -233,6 +244,7 @@ def test_weighted_mixture(grid, tmp_path):
   assert padded.shape[-1] == 4 and (padded[..., 2:] == 0).all() and (padded[..., :2] != 0).any()
 
 
+@pytest.mark.integration
 def test_gridworld_positions_follow_the_actions(grid):
   builder_dir, config = grid
   episodes = ArrayRecordEpisodes(builder_dir, "train")
@@ -252,6 +264,7 @@ def test_gridworld_positions_follow_the_actions(grid):
       np.testing.assert_array_equal(window["frames"][0, int(cy), int(cx)], gridworld.COLORS[i])
 
 
+@pytest.mark.unit
 def test_gridworld_without_snapping_keeps_sub_pixel_positions():
   config = gridworld.GridworldConfig(snap_to_pixels=False, episode_length=8)
   centres, actions = gridworld.simulate(config, np.random.default_rng(0))
@@ -263,6 +276,7 @@ def test_gridworld_without_snapping_keeps_sub_pixel_positions():
   assert config.name != gridworld.GridworldConfig(episode_length=8).name
 
 
+@pytest.mark.integration
 def test_prepare_gridworld_command(tmp_path):
   out = subprocess.run([sys.executable, "-m", "wmjax.cli", "data", "prepare", "gridworld",
                         "--data_dir", str(tmp_path), "--train_episodes", "3", "--test_episodes",
@@ -272,6 +286,7 @@ def test_prepare_gridworld_command(tmp_path):
   assert ArrayRecordEpisodes(builder_dir, "test").lengths().tolist() == [5]
 
 
+@pytest.mark.unit
 def test_global_batch_is_sharded_over_the_batch_axes():
   mesh = jax.make_mesh((2, 4, 1), ("data", "fsdp", "tensor"),
                        axis_types=(jax.sharding.AxisType.Auto,) * 3)

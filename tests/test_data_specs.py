@@ -26,6 +26,8 @@ from wmjax.data.videoio import read_video
 from wmjax.eval.video import write_video
 from wmjax.tasks.gridworld import dataset as gridworld
 
+pytestmark = pytest.mark.integration
+
 
 def _cli(*args):
   return subprocess.run([sys.executable, "-m", "wmjax.cli", *args], capture_output=True,

@@ -10,6 +10,8 @@ from wmjax.diffusion import (FlowMatching, GaussianDiffusion, SamplerConfig, cla
                              scheduling_matrix, training_levels, window_denoiser)
 from wmjax.diffusion import schedules
 
+pytestmark = pytest.mark.unit
+
 SHAPE = (2, 5, 4, 4, 3)  # [B, T, H, W, C]
 
 

@@ -13,6 +13,8 @@ from wmjax.config import load_config
 from wmjax.nn import STDiT, forward_flops, layers
 from wmjax.model import WorldModel
 
+pytestmark = pytest.mark.unit
+
 PAPER_SIZES = [("irasim.py:S", 33e6), ("irasim.py:B", 132e6), ("irasim.py:L", 461e6),
                ("irasim.py:XL", 679e6), ("wpe_600m.py", 609e6)]
 

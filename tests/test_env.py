@@ -11,6 +11,8 @@ from wmjax.data.stats import ActionStats
 from wmjax.env import WorldModelEnv
 from wmjax.rollout import rollout
 
+pytestmark = pytest.mark.unit
+
 
 def _stats(dim):
   rng = np.random.default_rng(0)

@@ -29,6 +29,7 @@ from wmjax.train.loop import train
 # ----------------------------------------------------------------------------- video files
 
 
+@pytest.mark.unit
 def test_mp4_and_gif_round_trip_and_panels():
   rng = np.random.default_rng(0)
   truth = np.zeros((5, 16, 16, 3), np.uint8)
@@ -60,6 +61,7 @@ def test_mp4_and_gif_round_trip_and_panels():
 # ----------------------------------------------------------------------------- user inputs
 
 
+@pytest.mark.unit
 def test_read_frames_and_actions(tmp_path):
   frame = np.random.default_rng(0).integers(0, 256, (16, 16, 3), np.uint8)
   Image.fromarray(frame).save(tmp_path / "a.png")
@@ -103,6 +105,7 @@ def _loaded(wm, params, config_name="irasim.py:S"):
   return LoadedModel(config, wm, params, stats, 0, PixelCodec())
 
 
+@pytest.mark.unit
 def test_run_rollouts_scores_only_real_frames():
   """Trajectories of different lengths padded together: frames past the end are NaN, the copy-last
   baseline is exact, and the mean of a trajectory covers its own frames only."""
@@ -130,6 +133,7 @@ def test_run_rollouts_scores_only_real_frames():
   assert len(summary["model"]["mse"]["per_frame"]) == 6
 
 
+@pytest.mark.unit
 def test_sweep_settings_vary_one_axis_at_a_time():
   assert protocols.sweep_settings(20, 9, 9) == [(1, 9), (2, 9), (4, 9), (8, 9), (9, 1), (9, 2),
                                                 (9, 4), (9, 8), (9, 9)]
@@ -146,6 +150,7 @@ def colour_trajectory_features(clips):
   return clips.mean((2, 3)).reshape(len(clips), -1)
 
 
+@pytest.mark.unit
 def test_frechet_distances_from_user_feature_networks():
   rng = np.random.default_rng(0)
   clips = rng.integers(0, 256, (12, 4, 8, 8, 3), np.uint8)
@@ -179,6 +184,7 @@ def workdir(tmp_path_factory):
   return str(root / "run")
 
 
+@pytest.mark.integration
 def test_load_model_reads_ema_or_raw_parameters(workdir):
   ema = load_model(workdir)
   raw = load_model(workdir, params="raw", step=2, overrides=["sampling.num_steps=3"])
@@ -197,6 +203,7 @@ def test_load_model_reads_ema_or_raw_parameters(workdir):
     load_model(os.path.dirname(workdir))
 
 
+@pytest.mark.integration
 def test_evaluate_command_writes_metrics_report_and_videos(workdir, tmp_path):
   out = tmp_path / "eval"
   assert cli.main(["evaluate", "--workdir", workdir, "--out", str(out), "--sets", "2",
@@ -223,6 +230,7 @@ def test_evaluate_command_writes_metrics_report_and_videos(workdir, tmp_path):
   assert (out / "videos" / "long_001.png").exists()
 
 
+@pytest.mark.integration
 def test_rollout_command_applies_the_checkpoint_normalisation(workdir, tmp_path):
   model = load_model(workdir)
   config = gridworld.GridworldConfig(num_squares=2, image_size=16, square_size=4)
@@ -250,6 +258,7 @@ def test_rollout_command_applies_the_checkpoint_normalisation(workdir, tmp_path)
               "--actions", str(tmp_path / "wrong.npy"), "--out", str(out)])
 
 
+@pytest.mark.integration
 def test_checkpoints_from_before_a_config_field_take_its_override(workdir, tmp_path):
   """A checkpoint whose stored config predates sampling.kv_cache and model.attention_impl loads
   with their defaults, and the new fields can be overridden."""

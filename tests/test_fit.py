@@ -26,6 +26,7 @@ def _batch(seed=0, batch=16):
           jax.random.normal(k2, (batch, 3, 4)))
 
 
+@pytest.mark.integration
 def test_auto_fit_takes_micro_batches_under_a_budget_and_keeps_the_loss():
   """Under a memory budget below the plain step's compiled size, the trainer's fit climbs to
   gradient accumulation, says so, and its first step has the plain step's loss."""
@@ -55,6 +56,7 @@ def test_auto_fit_takes_micro_batches_under_a_budget_and_keeps_the_loss():
     fit.fit_step(config, fit.parse_target("cpu:2"), budget_bytes=1024, batch=2)
 
 
+@pytest.mark.unit
 def test_targets_parse_and_refuse_clearly():
   assert len(fit.parse_target("cpu:2").devices) == 2
   with pytest.raises(ValueError, match="unknown compile target 'k80'"):
@@ -69,6 +71,7 @@ def test_targets_parse_and_refuse_clearly():
       ("none", 1), ("dots", 1), ("full", 1)]
 
 
+@pytest.mark.integration
 @pytest.mark.skipif(sys.platform != "linux", reason="libtpu (the [test] extra) is Linux-only")
 def test_train_step_compiles_for_a_tpu_pod_slice_without_one():
   """A v5p:2x2x1 topology (4 chips, from libtpu on this CPU machine): the sharded step compiles
@@ -84,6 +87,7 @@ def test_train_step_compiles_for_a_tpu_pod_slice_without_one():
   assert report["xla_flops_per_device"] > 0
 
 
+@pytest.mark.integration
 def test_fsdp_activation_memory_stays_with_the_data_parallel_step():
   """With activations constrained to the batch axes, FSDP over 4 devices needs no more temporary
   memory than data parallelism over 4 (same per-device batch) plus one layer's gathered weights.
@@ -116,6 +120,7 @@ def _run_host_only(command: list[str]) -> dict:
   return {"backends": json.loads(line.removeprefix("BACKENDS=")), "stdout": done.stdout}
 
 
+@pytest.mark.integration
 def test_host_commands_never_start_an_accelerator_backend(tmp_path):
   """info and compile run on the CPU even where JAX_PLATFORMS asks for a GPU (a GPU backend would
   fail here, or take 75 % of the card where there is one); compile --target cpu:2 gets its two

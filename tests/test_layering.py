@@ -7,6 +7,8 @@ import sys
 
 import pytest
 
+pytestmark = pytest.mark.integration
+
 # Bottom to top; a module belongs to the layer of its longest listed prefix. Push-T's evaluation
 # against its simulator uses the generic evaluation tools, so it sits beside them.
 LAYERS = (

@@ -11,6 +11,8 @@ from wmjax.eval import metrics
 from wmjax.tasks.gridworld import dataset as gridworld
 from wmjax.tasks.gridworld import metrics as gridworld_metrics
 
+pytestmark = pytest.mark.unit
+
 
 def _pair(shape, seed=0, noise=40):
   rng = np.random.default_rng(seed)

@@ -9,10 +9,12 @@ from nbclient import NotebookClient
 NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
 
 
+@pytest.mark.unit
 def test_the_three_notebooks_are_there():
   assert [p.stem for p in NOTEBOOKS] == ["keyboard_control", "policy_evaluation", "quickstart"]
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
 def test_notebook_is_stored_without_outputs(path):
   notebook = nbformat.read(path, as_version=4)
@@ -21,6 +23,8 @@ def test_notebook_is_stored_without_outputs(path):
       assert cell.outputs == [] and cell.execution_count is None, f"{path.name}: strip outputs"
 
 
+@pytest.mark.integration
+@pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
 def test_notebook_runs(path, tmp_path, monkeypatch):
   monkeypatch.setenv("WMJAX_NOTEBOOK_SMOKE", "1")

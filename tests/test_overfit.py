@@ -5,11 +5,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import pytest
 
 from conftest import tiny_config
 from wmjax.diffusion import diffusion_loss
 from wmjax.model import WorldModel
 from wmjax.rollout import rollout
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 
 def moving_square_clip(frames=6, size=16, square=4, seed=0):

@@ -10,6 +10,8 @@ from conftest import tiny_world_model
 from wmjax.eval import planning
 from wmjax.rollout import rollout
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture(scope="module")
 def model():

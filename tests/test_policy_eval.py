@@ -11,6 +11,8 @@ from wmjax.data.stats import ActionStats
 from wmjax.env import WorldModelEnv
 from wmjax.eval import policy_eval
 
+pytestmark = pytest.mark.unit
+
 
 class ToyWorld:
   """A deterministic stand-in for WorldModelEnv: a white pixel on an 8x8 frame moves by the

@@ -8,6 +8,8 @@ import pytest
 
 from conftest import ROOT
 
+pytestmark = pytest.mark.unit
+
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import profile_ops  # noqa: E402
 

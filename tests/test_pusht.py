@@ -25,6 +25,7 @@ def _render(states, size=48):
   return frames, info
 
 
+@pytest.mark.unit
 def test_frame_coverage_and_centroids_follow_the_simulator():
   rng = np.random.default_rng(0)
   states = np.concatenate([pusht.reset_state((60, 60), pusht.GOAL_POSE[:2], pusht.GOAL_POSE[2])[None],
@@ -44,6 +45,7 @@ def test_frame_coverage_and_centroids_follow_the_simulator():
   np.testing.assert_allclose(pusht.goal_mask(512).sum(), 6300, rtol=0.02)  # the T's area
 
 
+@pytest.mark.unit
 def test_the_pusher_beats_staying_and_noise_hurts():
   states = pusht.random_initial_states(np.random.default_rng(1), 12)
   final = {}
@@ -58,6 +60,7 @@ def test_the_pusher_beats_staying_and_noise_hurts():
     pusht.policy_from_spec("teleport", 4)
 
 
+@pytest.mark.integration
 def test_prepare_command_writes_labelled_episodes(tmp_path):
   assert cli.main(["data", "prepare", "pusht", "--data_dir", str(tmp_path),
                    "--train_episodes", "4", "--test_episodes", "2", "--episode_length", "6",
@@ -77,6 +80,7 @@ def test_prepare_command_writes_labelled_episodes(tmp_path):
   assert episode.extras["success"].dtype == bool
 
 
+@pytest.mark.unit
 def test_reward_functions():
   states = np.stack([pusht.reset_state((60, 60), pusht.GOAL_POSE[:2], pusht.GOAL_POSE[2]),
                      pusht.reset_state((60, 60), (150, 380), 0.3)])
@@ -92,6 +96,7 @@ def test_reward_functions():
     rewards.reward_from_spec("iou")
 
 
+@pytest.mark.unit
 def test_success_classifier_learns_and_round_trips(tmp_path):
   rng = np.random.default_rng(0)
   states = pusht.random_initial_states(rng, 48, max_offset=160, max_angle=1.0)
@@ -126,6 +131,8 @@ def workdir(tmp_path_factory):
   return str(root / "run")
 
 
+@pytest.mark.slow
+@pytest.mark.integration
 def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
   goal = tmp_path / "goal.png"
   Image.fromarray(np.full((16, 16, 3), 255, np.uint8)).save(goal)

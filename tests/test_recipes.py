@@ -26,6 +26,8 @@ pytest.importorskip("torch")
 pytest.importorskip("diffusers")
 from vae_fixtures import save_random_vae  # noqa: E402
 
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
 RESOLUTION = (32, 48)  # frames are resized to this; the tiny VAE halves it
 TINY = {"model.depth": 2, "model.hidden_size": 32, "model.num_heads": 2, "model.num_frames": 4,
         "model.remat": "none", "data.frames": 4, "data.num_workers": 0,

@@ -10,6 +10,8 @@ from conftest import tiny_world_model
 from wmjax.env import WorldModelEnv
 from wmjax.rollout import rollout, sample_block
 
+pytestmark = pytest.mark.unit
+
 CASES = [  # (config, overrides, c, h, N)
     ("irasim.py:S", (), 1, 3, 7),
     ("irasim.py:S", ("sampling.matrix='pyramid'",), 2, 3, 8),

@@ -9,6 +9,8 @@ from conftest import perturbed, tiny_config
 from wmjax.nn import STDiT
 from wmjax.nn.text_actions import MINUS, PLUS, POINT, SEPARATOR, action_tokens
 
+pytestmark = pytest.mark.unit
+
 
 def test_numbers_become_sign_digits_point_separator():
   got = np.asarray(action_tokens(jnp.asarray([[1.25, -0.4], [12.0, -0.004]])))

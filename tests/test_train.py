@@ -10,6 +10,8 @@ from wmjax.parallel import make_mesh
 from wmjax.model import WorldModel
 from wmjax.train.step import ShardedTrainer
 
+pytestmark = pytest.mark.unit
+
 OVERRIDES = ("model.in_channels=3", "model.action_dim=4", "model.hidden_size=32",
              "model.num_heads=4", "optim.grad_clip=0.1")
 
@@ -78,6 +80,7 @@ def test_memory_estimate_moves_with_remat_dtype_batch_and_sharding():
   assert abs(plain["state_gib"] - 16 * plain["parameters"] / 1024 ** 3) < 1e-9
 
 
+@pytest.mark.slow
 def test_sharded_training_with_splash_attention_equals_xla():
   """The splash kernel split over an (4, 1, 2) mesh by hand (shard_map) in the jitted, rematted
   train step: the same loss and parameters as XLA attention. 16x16 frames of 1x1 patches make

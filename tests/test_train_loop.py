@@ -18,6 +18,8 @@ from wmjax.launch import launch_local
 from wmjax.train.loop import NonFiniteLossError, train
 from wmjax.train.step import ShardedTrainer
 
+pytestmark = pytest.mark.integration
+
 
 def _overrides(data_dir, **extra):
   values = {
@@ -57,6 +59,7 @@ def _batches(workdir):
   return seen
 
 
+@pytest.mark.slow
 def test_kill_and_resume_is_bit_identical(data_dir, tmp_path):
   overrides = _overrides(data_dir)
   straight, interrupted = tmp_path / "straight", tmp_path / "interrupted"
@@ -91,6 +94,7 @@ def _flatten(tree):
           for path, leaf in jax.tree_util.tree_leaves_with_path(tree)}
 
 
+@pytest.mark.slow
 def test_local_launcher_runs_two_cooperating_processes(data_dir, tmp_path, capfd, monkeypatch):
   """`wmjax.launch` starts a 2-process CPU training job (one device each): both finish, hold the
   same parameters, and the checkpoint is written."""

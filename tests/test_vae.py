@@ -18,6 +18,9 @@ pytest.importorskip("diffusers")
 
 from vae_fixtures import LAYOUTS, save_random_vae  # noqa: E402  (needs torch and diffusers)
 
+pytestmark = pytest.mark.unit
+
+
 def _relative_error(ours, theirs):
   return float(np.linalg.norm(np.asarray(ours) - theirs) / np.linalg.norm(theirs))
 

@@ -20,6 +20,8 @@ from PIL import Image
 
 from wmjax.eval import vlm
 
+pytestmark = pytest.mark.unit
+
 KEY = "sk-test-secret-0123456789"
 
 
