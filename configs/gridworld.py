@@ -1,11 +1,12 @@
 """The built-in default: a small world model of the WPE gridworld (appendix C.1) for CPU.
 
 Pixel space (16x16 RGB, 2 squares of 4 px on the pixel grid -> 4-dim actions), 6-frame windows,
-a 1.4M-parameter ST-DiT of 4 layers of width 96, each a temporal block then a spatial one
-(deeper rather than wider, temporal first: moving a square happens in the spatial blocks after a
-temporal one, see experiments/gridworld/RESULTS.md), WPE objective (per-frame noise levels, sigmoid schedule,
-v prediction) with causal temporal attention, 10-step DDIM; rollouts of 1 context frame +
-5 actions. 1800 steps of batch 8 take about 7 minutes on a 2-core CPU.
+a 1.4M-parameter ST-DiT of 4 layers of width 96, each a temporal block then a spatial one, with
+relative 2-D positions (axial RoPE) in the spatial blocks: moving a square by the action happens
+in the spatial blocks after a temporal one, and with RoPE a move by an offset is one rotation of
+the query (experiments/gridworld/RESULTS.md). WPE objective (per-frame noise levels, sigmoid
+schedule, v prediction) with causal temporal attention, 10-step DDIM; rollouts of 1 context
+frame + 5 actions. 1800 steps of batch 8 take about 8 minutes on a 2-core CPU.
 """
 
 import dataclasses
@@ -31,7 +32,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.model = model_config(
       in_channels=3, patch_size=2, depth=8, hidden_size=96, num_heads=4, num_frames=6,
       action_dim=4, cond="per_frame", action_embed_ratio=0, causal_temporal=True,
-      temporal_first=True, action_dropout=0.1)
+      temporal_first=True, spatial_pos="rope", action_dropout=0.1)
   config.diffusion = ml_collections.ConfigDict(dict(
       kind="gaussian", schedule="sigmoid", num_timesteps=1000, prediction="v",
       regime="per_frame", num_context=1))
