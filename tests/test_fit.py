@@ -116,7 +116,7 @@ def _run_host_only(command: list[str]) -> dict:
   done = subprocess.run([sys.executable, "-c", script] + command, cwd=ROOT, env=env,
                         capture_output=True, text=True, timeout=600)
   assert done.returncode == 0, done.stderr[-2000:]
-  line = [l for l in done.stdout.splitlines() if l.startswith("BACKENDS=")][-1]
+  line = [row for row in done.stdout.splitlines() if row.startswith("BACKENDS=")][-1]
   return {"backends": json.loads(line.removeprefix("BACKENDS=")), "stdout": done.stdout}
 
 
