@@ -295,5 +295,7 @@ def test_global_batch_is_sharded_over_the_batch_axes():
   assert set(batch) == {"frames"}
   assert batch["frames"].sharding.shard_shape((8, 3)) == (1, 3)
   np.testing.assert_array_equal(np.asarray(batch["frames"]), local["frames"])
-  with pytest.raises(ValueError, match="not divisible by the 8 batch shards"):
+  expected = (r"global batch 6 is not divisible by the data-parallel size 8 "
+              r"\(mesh data x fsdp = 2 x 4\): expected a multiple of 8, got 6")
+  with pytest.raises(ValueError, match=expected):
     global_batch({"frames": np.zeros((6, 3), np.float32)}, mesh)

@@ -49,7 +49,10 @@ PACKAGES = ["wmjax.frames", "wmjax.errors", "wmjax.parallel", "wmjax.config", "w
             "wmjax.diffusion", "wmjax.data.pipeline", "wmjax.data.latents", "wmjax.codecs",
             "wmjax.model", "wmjax.rollout", "wmjax.env", "wmjax.interactive", "wmjax.tasks",
             "wmjax.tasks.pusht.evaluate", "wmjax.eval.evaluate", "wmjax.eval.rewards",
-            "wmjax.eval.policy_eval", "wmjax.train.loop", "wmjax.cli"]
+            "wmjax.eval.policy_eval", "wmjax.eval.user_rollout", "wmjax.train.loop",
+            "wmjax.train.info", "wmjax.train.encode", "wmjax.cli", "wmjax.cli.train",
+            "wmjax.cli.evaluate", "wmjax.cli.rollout", "wmjax.cli.pusht", "wmjax.cli.launch",
+            "wmjax.cli.info", "wmjax.cli.compile", "wmjax.cli.data"]
 
 
 @pytest.mark.parametrize("package", PACKAGES)

@@ -9,6 +9,7 @@ slices into global ``jax.Array``s.
 from __future__ import annotations
 
 import contextlib
+import math
 from typing import Any, Mapping, Sequence
 
 import flax.linen as nn
@@ -32,18 +33,36 @@ def global_batch(local: Mapping[str, Any], mesh: Mesh,
   batch is ``process_count`` times the local one.
   """
   sharding = batch_sharding(mesh, batch_axes)
-  shards = int(np.prod([mesh.shape[a] for a in batch_axes if a in mesh.axis_names]))
   out = {}
   for key, value in local.items():
     value = np.asarray(value)
     if value.dtype.kind not in "biuf":
       continue
-    global_size = value.shape[0] * jax.process_count()
-    if global_size % shards:
-      raise ValueError(f"global batch {global_size} is not divisible by the {shards} batch "
-                       f"shards of the mesh {dict(mesh.shape)}")
+    check_batch_divisible(value.shape[0] * jax.process_count(), mesh, batch_axes=batch_axes)
     out[key] = jax.make_array_from_process_local_data(sharding, value)
   return out
+
+
+def check_batch_divisible(batch: int, mesh: Mesh, micro_batches: int = 1, processes: int = 1,
+                          what: str = "global batch",
+                          batch_axes: Sequence[str] = BATCH_AXES) -> None:
+  """ValueError unless a global batch of ``batch`` examples splits evenly over the batch axes of
+  ``mesh`` (the data-parallel size), each shard into ``micro_batches`` gradient-accumulation
+  micro-batches, and over ``processes`` feeding processes. The one home of this check: the
+  training loop, the train step and :func:`global_batch` call it."""
+  axes = [a for a in batch_axes if a in mesh.axis_names]
+  data_parallel = int(np.prod([mesh.shape[a] for a in axes]))
+  multiple = math.lcm(data_parallel * micro_batches, processes)
+  if batch % multiple == 0:
+    return
+  factors = f"the data-parallel size {data_parallel}"
+  if micro_batches > 1:
+    factors += f" x {micro_batches} micro-batches (optim.grad_accum)"
+  if processes > 1:
+    factors += f" and the {processes} processes"
+  layout = " x ".join(axes) + " = " + " x ".join(str(mesh.shape[a]) for a in axes)
+  raise ValueError(f"{what} {batch} is not divisible by {factors} (mesh {layout}): expected a "
+                   f"multiple of {multiple}, got {batch}")
 
 
 # ----------------------------------------------------------------------------- meshes and rules

@@ -348,3 +348,19 @@ def fit_for_training(config: ml_collections.ConfigDict, log=print
       f"remat={config.model.remat!r} grad_accum={config.optim.grad_accum} needs "
       f"{first[2]['total_gib']:.3g})")
   return fitted, trainer, report
+
+
+def compile_report(config: ml_collections.ConfigDict, target: Target, what: str = "train",
+                   batch: int | None = None, budget_bytes: int | None = None, log=print) -> dict:
+  """The report of :func:`compile_step` (``what='train'``) or :func:`compile_rollout`
+  (``'rollout'``) for ``target``. A train step that does not fit also gets ``auto_fit``: the
+  setting :func:`fit_step` would choose (remat, grad_accum, its size and what was tried)."""
+  if what == "rollout":
+    return compile_rollout(config, target, batch, budget_bytes)
+  first = compile_step(config, target, batch, budget_bytes)
+  report = first[2]
+  if report["fits"] is False:
+    _, _, chosen = fit_step(config, target, budget_bytes, batch, first=first, log=log)
+    report["auto_fit"] = {"remat": chosen["remat"], "grad_accum": chosen["grad_accum"],
+                          "total_gib": chosen["total_gib"], "tried": chosen["tried"]}
+  return report

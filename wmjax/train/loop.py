@@ -265,10 +265,8 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
   is_chief = jax.process_index() == 0
   data = build_data(config)
   mesh = parallel.make_mesh(config.mesh)
-  shards = mesh.shape["data"] * mesh.shape["fsdp"]
-  if config.batch_size % shards or config.batch_size % jax.process_count():
-    raise ValueError(f"global batch_size {config.batch_size} is not divisible by the data-parallel "
-                     f"size {shards} and the {jax.process_count()} processes")
+  parallel.check_batch_divisible(config.batch_size, mesh, processes=jax.process_count(),
+                                 what="global batch_size")
   world_model = WorldModel.from_config(config)
   frame_shape, frames = tuple(config.frame_shape), config.data.frames
   parallel.check_shardable(

@@ -97,13 +97,7 @@ def check_batch_shapes(world_model: WorldModel, frames_shape, actions_shape, mes
   net.check_inputs(jax.ShapeDtypeStruct(frames_shape, jnp.float32),
                    jax.ShapeDtypeStruct(frames_shape[:2], jnp.float32),
                    jax.ShapeDtypeStruct(actions_shape, jnp.float32))
-  data_parallel = mesh.shape["data"] * mesh.shape["fsdp"]
-  if frames_shape[0] % (data_parallel * micro_batches):
-    accumulation = (f" x {micro_batches} micro-batches (optim.grad_accum)"
-                    if micro_batches > 1 else "")
-    raise ValueError(f"global batch {frames_shape[0]} is not divisible by the data-parallel size "
-                     f"{data_parallel}{accumulation} (mesh data x fsdp = {mesh.shape['data']} x "
-                     f"{mesh.shape['fsdp']})")
+  parallel.check_batch_divisible(frames_shape[0], mesh, micro_batches)
 
 
 class ShardedTrainer:

@@ -43,6 +43,23 @@ def _image_size(model) -> int:
   return h
 
 
+# the policies ``wmjax eval-policy`` compares when none are named: noise levels of the scripted
+# pusher, and standing still
+DEFAULT_POLICIES = ("push", "push:0.1", "push:0.2", "push:0.5", "stay")
+
+
+def policies_from_specs(specs, chunk: int) -> dict[str, pusht.PolicyFn]:
+  """Policies by spec (:func:`.simulator.policy_from_spec`; default :data:`DEFAULT_POLICIES`),
+  each acting ``chunk`` steps at a time, named as files may be (``push:0.1`` -> ``push@0.1``)."""
+  return {spec.replace(":", "@"): pusht.policy_from_spec(spec, chunk)
+          for spec in specs or DEFAULT_POLICIES}
+
+
+def proposal_from_spec(spec: str, length: int) -> planning.Proposal:
+  """The planning proposal sampling candidates of ``length`` actions from the policy ``spec``."""
+  return planning.policy_proposal(pusht.policy_from_spec(spec, length))
+
+
 def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
                       rewards: dict[str, RewardFn], *, episodes: int, steps: int, seed: int = 0,
                       scan: bool = False, out: str | None = None, videos: int = 4

@@ -1,0 +1,66 @@
+"""The ``wmjax`` command line: one module per command group, each parsing its arguments, calling
+the library and printing the result.
+
+  wmjax train --config configs/gridworld.py --workdir DIR [--config.key=value ...]   (train)
+  wmjax evaluate --workdir DIR [--split test] [--protocols short,long,sweep]        (evaluate)
+  wmjax rollout --workdir DIR --frames FILE [FILE ...] --actions FILE --out DIR      (rollout)
+  wmjax eval-policy --workdir DIR [--policy push:0.1 ...] [--reward coverage|...]   (pusht)
+  wmjax plan --workdir DIR [--candidates 1,5,10,50] [--proposal push:0.2]            (pusht)
+  wmjax launch --num_processes 2 -- train --config configs/gridworld.py --workdir DIR (launch)
+  wmjax info --config configs/irasim.py:XL [--config.key=value ...]                  (info)
+  wmjax compile --config configs/irasim.py:XL --target h100|v5p:2x2x1|cpu:N          (compile)
+  wmjax data prepare gridworld|pusht --data_dir DIR [--num_squares N ...]            (data)
+  wmjax data convert SRC_BUILDER_DIR DST_DIR
+  wmjax data encode --config FILE --out DIR [--splits train,test]
+  wmjax data stats BUILDER_DIR [--split train] [--recompute]
+  wmjax data inspect BUILDER_DIR
+  wmjax data import lerobot SRC OUT [--camera KEY]
+
+``eval-policy`` and ``plan`` are Push-T's: they check a Push-T world model against the gym-pusht
+simulator. Config overrides use ``--config.dotted.key=value`` with Python literal values (train,
+evaluate, rollout, eval-policy, plan, info, compile, data encode); an unknown key or flag is an
+error. info, compile and the data commands but encode run JAX on the CPU only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from wmjax.cli import common
+
+DESCRIPTION = ("Action-conditioned video world models: train, evaluate and roll out; eval-policy "
+               "and plan check a Push-T model against its simulator.")
+
+
+def build_parser() -> argparse.ArgumentParser:
+  """The ``wmjax`` parser with every command group's subcommands."""
+  from wmjax.cli import compile as compile_
+  from wmjax.cli import data, evaluate, info, launch, pusht, rollout, train
+  parser = argparse.ArgumentParser(prog="wmjax", description=DESCRIPTION)
+  sub = parser.add_subparsers(dest="command", required=True)
+  for group in (train, evaluate, rollout, pusht, launch, info, compile_, data):
+    group.add_parser(sub)
+  return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+  """Run one ``wmjax`` command; its exit status. A config error exits 2 and a run error (a
+  condition the message explains) 1, each with one line on stderr instead of a traceback."""
+  args, extra = build_parser().parse_known_args(argv)
+  if not args.passes_on:
+    bad = [a for a in extra if not (args.takes_overrides and a.startswith("--config."))]
+    bad += [a for a in extra if a.startswith("--config.") and "=" not in a]
+    if bad:
+      args.command_parser.error(
+          f"unrecognized arguments: {' '.join(bad)}"
+          + ("; config overrides look like --config.KEY=VALUE" if args.takes_overrides else ""))
+  if args.host_only:
+    common.host_only()
+  from wmjax.config import ConfigError
+  from wmjax.errors import RunError
+  try:
+    return args.func(args, extra)
+  except (ConfigError, RunError) as e:
+    print(f"{args.command_parser.prog}: {e}", file=sys.stderr)
+    return 2 if isinstance(e, ConfigError) else 1

@@ -1,0 +1,149 @@
+"""``wmjax data``: prepare, convert, encode, summarise and import datasets."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+
+from wmjax.cli import common
+
+
+def prepare(args, extra) -> int:
+  """Generate a dataset (gridworld, or Push-T from the gym-pusht simulator) as an RLDS TFDS
+  dataset in ArrayRecord, once per parameter set; prints the builder directory."""
+  del extra
+  from wmjax.data.sources import GENERATED
+  params_class, prepare_fn = GENERATED[args.dataset]
+  fields = {f.name: getattr(args, f.name) for f in dataclasses.fields(params_class)}
+  print(prepare_fn(args.data_dir, params_class(**fields)))
+  return 0
+
+
+def convert(args, extra) -> int:
+  """Rewrite a TFRecord RLDS dataset (TFDS builder directory) as ArrayRecord."""
+  del extra
+  from wmjax.data.convert import convert_to_array_record
+  print(convert_to_array_record(args.src, args.dst))
+  return 0
+
+
+def encode(args, extra) -> int:
+  """Encode a dataset's episodes with the config's codec into ArrayRecord latents (IRASim's
+  pre-encoding); train from them with --config.data.latents_dir=OUT."""
+  from wmjax.train.encode import encode_latents
+  config = common.config_from_args(args, extra)
+  splits = args.splits.split(",") if args.splits else None
+  print(encode_latents(config, args.out, splits, dataset=args.dataset, seed=args.seed))
+  return 0
+
+
+def stats(args, extra) -> int:
+  """Compute (or show the cached) action statistics of a dataset split (cached per split and
+  spec: those of train[:95%] are of exactly those episodes)."""
+  del extra
+  from wmjax.data.sources import action_stats
+  result = action_stats(args.builder_dir, args.split, args.name, recompute=args.recompute)
+  print(json.dumps(dict(result.to_dict(), split=args.split), indent=2))
+  return 0
+
+
+def inspect(args, extra) -> int:
+  """Print a prepared TFDS dataset's splits and features, and a suggested dataset spec
+  (config.data.spec) to train on it with no code."""
+  del extra
+  from wmjax.data.describe import describe
+  from wmjax.data.sources import open_builder
+  print(describe(open_builder(args.builder_dir)))
+  return 0
+
+
+def import_lerobot(args, extra) -> int:
+  """Import a local LeRobot dataset (meta/info.json, data/**/*.parquet, videos/**/*.mp4; v2.x or
+  v3 layout) as an RLDS dataset in ArrayRecord; prints the builder directory. Train on it with
+  configs/rlds.py and --config.data.builder_dir=OUT."""
+  del extra
+  from wmjax.data.lerobot import import_lerobot as run_import
+  print(run_import(args.src, args.out, camera=args.camera))
+  return 0
+
+
+def _float_tuple(text: str) -> tuple[float, ...]:
+  return tuple(float(part) for part in text.split(",") if part.strip())
+
+
+def _bool(text: str) -> bool:
+  value = text.strip().lower()
+  if value not in ("true", "false", "1", "0"):
+    raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
+  return value in ("true", "1")
+
+
+def _add_prepare(data_sub) -> None:
+  """``data prepare NAME``: one subcommand per registered generated dataset, one flag per field
+  of its parameter dataclass."""
+  from wmjax import tasks  # noqa: F401  (importing it registers the generated datasets)
+  from wmjax.data.sources import GENERATED
+  parser = data_sub.add_parser("prepare", help="generate a dataset (RLDS, ArrayRecord)",
+                               description=prepare.__doc__)
+  prepare_sub = parser.add_subparsers(dest="dataset", required=True)
+  for name, (params_class, _) in GENERATED.items():
+    dataset = prepare_sub.add_parser(name, help=f"generate the {name} dataset",
+                                     description=prepare.__doc__)
+    dataset.add_argument("--data_dir", required=True, help="TFDS data directory to write into")
+    for field in dataclasses.fields(params_class):
+      parse = (_float_tuple if isinstance(field.default, tuple) else
+               _bool if isinstance(field.default, bool) else type(field.default))
+      shown = ",".join(map(str, field.default)) if isinstance(field.default, tuple) else field.default
+      dataset.add_argument(f"--{field.name}", type=parse, default=field.default,
+                           help=f"{name} {field.name} (default {shown})")
+    common.register(dataset, prepare, host_only=True)
+
+
+def add_parser(sub) -> None:
+  """The ``data`` command group."""
+  data = sub.add_parser("data", help="prepare, convert, encode, summarise and import datasets")
+  data_sub = data.add_subparsers(dest="data_command", required=True)
+  _add_prepare(data_sub)
+
+  parser = data_sub.add_parser("convert", help="TFRecord RLDS -> ArrayRecord (no beam)",
+                               description=convert.__doc__)
+  parser.add_argument("src", help="builder directory, e.g. gs://gresearch/robotics/bridge/0.1.0")
+  parser.add_argument("dst", help="output builder directory (must not exist)")
+  common.register(parser, convert, host_only=True)
+
+  parser = data_sub.add_parser("encode", help="pre-encode a dataset with the config's codec",
+                               description=encode.__doc__)
+  parser.add_argument("--config", required=True, help=common.CONFIG_HELP)
+  parser.add_argument("--out", required=True, help="output directory (must not exist)")
+  parser.add_argument("--splits", default=None,
+                      help="comma-separated splits (default: the config's train and eval splits)")
+  parser.add_argument("--dataset", default=None, help="the mixture member to encode")
+  parser.add_argument("--seed", type=int, default=0, help="for codecs that sample latents")
+  common.register(parser, encode, takes_overrides=True)
+
+  parser = data_sub.add_parser("stats", help="action statistics, cached as JSON beside the data",
+                               description=stats.__doc__)
+  parser.add_argument("builder_dir")
+  parser.add_argument("--split", default="train")
+  parser.add_argument("--name", default=None, help="dataset spec name (default: the builder's)")
+  parser.add_argument("--recompute", action="store_true")
+  common.register(parser, stats, host_only=True)
+
+  parser = data_sub.add_parser("inspect", help="features of a TFDS dataset and a suggested spec",
+                               description=inspect.__doc__)
+  parser.add_argument("builder_dir")
+  common.register(parser, inspect, host_only=True)
+
+  parser = data_sub.add_parser("import", help="bring another format in as RLDS (ArrayRecord)",
+                               description=import_lerobot.__doc__)
+  import_sub = parser.add_subparsers(dest="format", required=True)
+  lerobot = import_sub.add_parser("lerobot", help="a local LeRobot dataset (v2.x or v3)",
+                                  description=import_lerobot.__doc__)
+  lerobot.add_argument("src", help="LeRobot dataset directory (with meta/info.json)")
+  lerobot.add_argument("out", help="output builder directory (must not exist)")
+  lerobot.add_argument("--camera", default=None,
+                       help="camera feature stored as observation/image, e.g. "
+                            "observation.images.top (default: the first); every camera is also "
+                            "kept as observation/<name>")
+  common.register(lerobot, import_lerobot, host_only=True)

@@ -1,0 +1,104 @@
+"""The Push-T task's commands, checked against the gym-pusht simulator: ``wmjax eval-policy``
+(policy values in the world model vs the simulator) and ``wmjax plan`` (model-predictive control
+run in the simulator). Both need a world model trained on Push-T (``wmjax data prepare pusht``,
+configs/pusht.py); the work is :mod:`wmjax.tasks.pusht.evaluate`'s."""
+
+from __future__ import annotations
+
+from wmjax.cli import common
+
+OVERRIDES_NOTE = ("Push-T only. Inference settings of the checkpoint's config can be overridden, "
+                  "e.g. --config.sampling.num_steps=4.")
+
+
+def _load(args, extra):
+  from wmjax.model import load_model
+  return load_model(args.workdir, step=args.step, params=args.params,
+                    overrides=common.overrides(extra))
+
+
+def eval_policy(args, extra) -> int:
+  """Evaluate policies in a Push-T world model and, for ground truth, in the gym-pusht simulator
+  from the same initial states: Monte Carlo values (mean ± stderr), Pearson / Spearman / Kendall,
+  rank agreement, MMRV, value gap; writes policy_eval.json, policy_eval.md and one video per
+  policy (simulator | world model | difference)."""
+  from wmjax.eval.rewards import reward_from_spec
+  from wmjax.tasks.pusht.evaluate import evaluate_policies, policies_from_specs, policy_report
+  model = _load(args, extra)
+  policies = policies_from_specs(args.policy, model.config.rollout.horizon)
+  rewards = {spec: reward_from_spec(spec) for spec in args.reward or ["coverage"]}
+  out = args.out or f"{args.workdir}/policy_eval"
+  result = evaluate_policies(model, policies, rewards, episodes=args.episodes, steps=args.steps,
+                             seed=args.seed, scan=args.scan, out=out, videos=args.videos)
+  print(policy_report(result))
+  print(f"wrote {out}/policy_eval.json, policy_eval.md and videos/")
+  return 0
+
+
+def plan(args, extra) -> int:
+  """Model-predictive control by ranking with a Push-T world model, executed in the gym-pusht
+  simulator: at each replanning, K chunks from the proposal policy are imagined in one batch,
+  scored by the value function, and the best one's first actions are executed; final simulator
+  coverage for each K."""
+  from wmjax.eval.rewards import reward_from_spec
+  from wmjax.tasks.pusht.evaluate import plan_in_simulator, proposal_from_spec
+  model = _load(args, extra)
+  proposal = proposal_from_spec(args.proposal, args.plan_length or model.config.rollout.horizon)
+  out = args.out or f"{args.workdir}/plan"
+  candidates = [int(k) for k in args.candidates.split(",")]
+  result = plan_in_simulator(model, proposal, reward_from_spec(args.value), candidates,
+                             episodes=args.episodes, steps=args.steps, seed=args.seed,
+                             execute=args.execute, lookahead=args.lookahead, out=out)
+  print(result["table"])
+  print(f"wrote {out}/plan.json and plan.md")
+  return 0
+
+
+def _simulator_args(parser, default_out: str) -> None:
+  parser.add_argument("--workdir", required=True,
+                      help="workdir of a model trained on Push-T, with checkpoints/")
+  parser.add_argument("--episodes", type=int, default=32,
+                      help="episodes, i.e. initial states (default 32)")
+  parser.add_argument("--steps", type=int, default=24,
+                      help="control steps per episode (default 24)")
+  parser.add_argument("--seed", type=int, default=0)
+  common.checkpoint_args(parser, dtype=False)
+  parser.add_argument("--out", default=None, help=f"output directory (WORKDIR/{default_out})")
+
+
+def add_parser(sub) -> None:
+  """The ``eval-policy`` and ``plan`` commands."""
+  policy = sub.add_parser("eval-policy", help="Push-T: policy values in the world model vs the "
+                                              "gym-pusht simulator",
+                          description=eval_policy.__doc__, epilog=OVERRIDES_NOTE)
+  _simulator_args(policy, "policy_eval")
+  policy.add_argument("--policy", action="append",
+                      help="push | push:NOISE | stay | module:attribute, repeatable (default: "
+                           "push, push:0.1, push:0.2, push:0.5, stay)")
+  policy.add_argument("--reward", action="append",
+                      help="coverage | vlm | classifier:DIR | goal:IMAGE, repeatable, all scored "
+                           "on the same rollouts (default: coverage)")
+  policy.add_argument("--scan", action="store_true",
+                      help="roll out inside one jitted scan (pure-JAX policies)")
+  policy.add_argument("--videos", type=int, default=4, help="episodes per policy video")
+  common.register(policy, eval_policy, takes_overrides=True)
+
+  planner = sub.add_parser("plan", help="Push-T: model-predictive control by ranking, run in the "
+                                        "gym-pusht simulator",
+                           description=plan.__doc__, epilog=OVERRIDES_NOTE)
+  _simulator_args(planner, "plan")
+  planner.add_argument("--candidates", default="1,5,10,50",
+                       help="comma-separated K values (default 1,5,10,50)")
+  planner.add_argument("--proposal", default="push:0.2",
+                       help="proposal policy: push:NOISE | stay | module:attribute (default "
+                            "push:0.2)")
+  planner.add_argument("--plan_length", type=int, default=None,
+                       help="actions per candidate (default: the model's rollout horizon)")
+  planner.add_argument("--execute", type=int, default=None,
+                       help="actions executed before replanning (default: the rollout horizon)")
+  planner.add_argument("--value", default="coverage",
+                       help="value function on imagined frames: coverage | vlm | classifier:DIR | "
+                            "goal:IMAGE (default coverage)")
+  planner.add_argument("--lookahead", action="store_true",
+                       help="also plan with the simulator itself as the model (a reference)")
+  common.register(planner, plan, takes_overrides=True)
