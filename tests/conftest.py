@@ -4,11 +4,26 @@ Tests run on 8 simulated CPU devices so that sharding is exercised.
 """
 
 import os
+import shutil
+import tempfile
 
 os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                            + " --xla_force_host_platform_device_count=8").strip()
 
-from pathlib import Path  # noqa: E402  (XLA_FLAGS must be set before jax is imported)
+# One persistent compilation cache for the run, shared through the environment with the
+# processes it starts (`wmjax train` subprocesses, notebook kernels, pytest-xdist workers): the
+# suite compiles the same tiny models again and again, in module after module (the fixture below
+# drops the in-memory programs) and in every subprocess. A fresh directory per run, removed at
+# the end by the process that made it, so that every run still compiles everything once.
+_CACHE_VARIABLE = "WMJAX_TEST_COMPILATION_CACHE"
+_OWN_CACHE = _CACHE_VARIABLE not in os.environ
+if _OWN_CACHE:
+  os.environ[_CACHE_VARIABLE] = tempfile.mkdtemp(prefix="wmjax-test-xla-cache-")
+os.environ.update(JAX_COMPILATION_CACHE_DIR=os.environ[_CACHE_VARIABLE],
+                  JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+                  JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1")
+
+from pathlib import Path  # noqa: E402  (the variables above must be set before jax is imported)
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
@@ -42,6 +57,24 @@ def tiny_world_model(config: str = "irasim.py:S", *overrides: str, frame_shape=(
   return wm, perturbed(params, jax.random.key(seed + 1))
 
 
+TIERS = ("unit", "integration")
+
+
+def pytest_collection_modifyitems(config, items):
+  """Every test sits in exactly one tier (pyproject.toml registers the markers)."""
+  untiered = [item.nodeid for item in items
+              if sum(item.get_closest_marker(tier) is not None for tier in TIERS) != 1]
+  if untiered:
+    raise pytest.UsageError(
+        f"{len(untiered)} tests carry not exactly one of the markers {TIERS} (mark a module with "
+        "`pytestmark = pytest.mark.unit`, or a test with a decorator): " + ", ".join(untiered[:10]))
+
+
+def pytest_unconfigure(config):
+  if _OWN_CACHE:
+    shutil.rmtree(os.environ.pop(_CACHE_VARIABLE), ignore_errors=True)
+
+
 @pytest.fixture
 def rng():
   return jax.random.key(0)
@@ -55,9 +88,10 @@ def _free_compiled_programs():
   jax.clear_caches()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def data_dir(tmp_path_factory):
-  """A small gridworld (16 train, 2 test episodes of 12 steps) for training-loop tests."""
+  """A small gridworld (16 train, 2 test episodes of 12 steps) for training-loop tests; built
+  once per run (and per xdist worker), read-only for the tests."""
   path = tmp_path_factory.mktemp("data")
   gridworld.prepare(str(path), gridworld.GridworldConfig(train_episodes=16, test_episodes=2,
                                                          episode_length=12))

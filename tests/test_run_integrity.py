@@ -16,7 +16,6 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
-from jax.experimental.compilation_cache import compilation_cache
 
 from conftest import tiny_config
 from wmjax import cli, parallel
@@ -58,21 +57,6 @@ def _cli_train(workdir, data_dir, *flags, **extra):
   overrides += [f"--config.{v}" for v in _values(data_dir, **extra)]
   return cli.main(["train", "--config", os.path.join(ROOT, "configs", "gridworld.py"),
                    "--workdir", str(workdir)] + overrides + list(flags))
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _compilation_cache(tmp_path_factory):
-  """Most tests here train the same tiny model: compile it once for the module."""
-  names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
-           "jax_persistent_cache_min_entry_size_bytes")
-  previous = {name: getattr(jax.config, name) for name in names}
-  jax.config.update("jax_compilation_cache_dir", str(tmp_path_factory.mktemp("xla_cache")))
-  jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
-  jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-  yield
-  for name, value in previous.items():
-    jax.config.update(name, value)
-  compilation_cache.reset_cache()  # later modules compile as before
 
 
 @pytest.fixture(scope="module")
@@ -118,6 +102,7 @@ def _patched_step(nan_from=None, then=None):
 # ----------------------------------------------------------------------------- 1, 8, 10
 
 
+@pytest.mark.integration
 def test_sigterm_never_saves_a_nan_state(data_dir, tmp_path, monkeypatch):
   """1: SIGTERM after the state went NaN (no loss was checked: log_every is large) saves
   nothing, and the message does not claim a checkpoint that does not exist (8)."""
@@ -135,6 +120,7 @@ def test_sigterm_never_saves_a_nan_state(data_dir, tmp_path, monkeypatch):
   assert _steps(tmp_path) == []
 
 
+@pytest.mark.integration
 def test_nan_on_a_fresh_run_names_no_checkpoint_and_advises_tighter_clipping(data_dir, tmp_path,
                                                                              monkeypatch):
   """8: the loss goes NaN before any checkpoint: the advice is a smaller grad_clip."""
@@ -153,6 +139,7 @@ def test_nan_on_a_fresh_run_names_no_checkpoint_and_advises_tighter_clipping(dat
   assert "step 0" not in message
 
 
+@pytest.mark.integration
 def test_ctrl_c_saves_and_exits_130(data_dir, tmp_path, monkeypatch):
   """10: Ctrl-C (SIGINT) saves the current step like SIGTERM and exits 128 + 2."""
   def interrupt(step):
@@ -169,6 +156,7 @@ def test_ctrl_c_saves_and_exits_130(data_dir, tmp_path, monkeypatch):
 # ----------------------------------------------------------------------------- 2, 3, 12
 
 
+@pytest.mark.integration
 def test_resume_refuses_a_changed_config_and_keeps_config_json(run, data_dir):
   """2: a changed objective is refused with the differing key; config.json is untouched."""
   before = (run / "config.json").read_text()
@@ -179,6 +167,7 @@ def test_resume_refuses_a_changed_config_and_keeps_config_json(run, data_dir):
   assert _steps(run) == [2, 4]
 
 
+@pytest.mark.integration
 def test_config_changes_safe_on_resume_or_named_are_accepted_and_recorded(run, data_dir):
   """2: train.num_steps is always accepted, a named change is accepted, both are recorded."""
   config = _config(data_dir, **{"optim.learning_rate": 1e-3, "train.num_steps": 5})
@@ -191,6 +180,7 @@ def test_config_changes_safe_on_resume_or_named_are_accepted_and_recorded(run, d
   assert _steps(run) == [2, 4, 5]
 
 
+@pytest.mark.integration
 def test_shape_change_on_resume_is_one_clear_error(run, data_dir, capfd):
   """3: a wider model stops at once with one message naming the key, no traceback."""
   assert _cli_train(run, data_dir, **{"model.hidden_size": 64}) == 1
@@ -201,6 +191,7 @@ def test_shape_change_on_resume_is_one_clear_error(run, data_dir, capfd):
   assert len(message.strip().splitlines()) <= 4
 
 
+@pytest.mark.integration
 def test_unknown_config_keys_and_unshardable_meshes_fail_early(data_dir, tmp_path, capsys):
   """12: a misspelt key names the right one; a mesh that cannot split the heads is refused
   before compilation; --help documents overrides and resuming."""
@@ -230,6 +221,7 @@ def test_unknown_config_keys_and_unshardable_meshes_fail_early(data_dir, tmp_pat
 # ----------------------------------------------------------------------------- 4
 
 
+@pytest.mark.integration
 def test_a_failed_background_save_stops_training_at_once(data_dir, tmp_path, monkeypatch):
   """4: the disk fills up while checkpoint 4 is written in the background: training stops
   before the next checkpoint is due, with a one-line message; checkpoint 2 stays, the partial
@@ -261,6 +253,7 @@ def test_a_failed_background_save_stops_training_at_once(data_dir, tmp_path, mon
   assert not [p for p in os.listdir(tmp_path / "checkpoints") if "tmp" in p]
 
 
+@pytest.mark.integration
 def test_checkpointer_poll_raises_once_the_failed_save_has_finished(tmp_path, monkeypatch):
   real_save = ocp.JsonCheckpointHandler._save_fn
 
@@ -284,6 +277,7 @@ def test_checkpointer_poll_raises_once_the_failed_save_has_finished(tmp_path, mo
 # ----------------------------------------------------------------------------- 5
 
 
+@pytest.mark.integration
 def test_damaged_latest_checkpoint_falls_back_with_a_warning(run, data_dir, capfd):
   """5: a truncated array file of checkpoint 4: the run resumes from 2, says so naming both,
   and keeps the damaged checkpoint aside; reading it for inference names the file and --step."""
@@ -306,6 +300,7 @@ def test_damaged_latest_checkpoint_falls_back_with_a_warning(run, data_dir, capf
 # ----------------------------------------------------------------------------- 6, 7, 9
 
 
+@pytest.mark.integration
 def test_batches_do_not_depend_on_the_number_of_workers(data_dir):
   """6: batch k is the same with 0 or 2 worker processes, and ``start`` skips to it."""
   builder_dir = gridworld.prepare(str(data_dir), gridworld.GridworldConfig(
@@ -328,6 +323,7 @@ def test_batches_do_not_depend_on_the_number_of_workers(data_dir):
     np.testing.assert_array_equal(a["start"], b["start"])
 
 
+@pytest.mark.integration
 def test_resume_with_more_workers_logs_each_step_once_and_cleans_up(run, data_dir):
   """6, 7, 9: the run died after logging step 4 but before checkpoint 4 completed, leaving a
   temporary checkpoint and a stale lock; it resumes from 2 with 2 data workers, reads the same
@@ -345,6 +341,7 @@ def test_resume_with_more_workers_logs_each_step_once_and_cleans_up(run, data_di
   assert not (run / LOCK_NAME).exists()
 
 
+@pytest.mark.integration
 def test_a_second_trainer_in_the_workdir_is_refused(data_dir, tmp_path):
   """7: while one process holds the workdir, another train stops at once naming it."""
   holder = WorkdirLock(str(tmp_path))
@@ -361,6 +358,7 @@ def test_a_second_trainer_in_the_workdir_is_refused(data_dir, tmp_path):
 # ----------------------------------------------------------------------------- 11
 
 
+@pytest.mark.integration
 def test_commands_refuse_unknown_flags_and_out_of_range_inputs(trained, tmp_path, capsys):
   """11: unknown flags, --horizon 0, ambiguous float frames and absurd actions are errors."""
   with pytest.raises(SystemExit) as exit_:
@@ -387,6 +385,7 @@ def test_commands_refuse_unknown_flags_and_out_of_range_inputs(trained, tmp_path
   assert not (tmp_path / "out").exists() and not (tmp_path / "o").exists()
 
 
+@pytest.mark.unit
 def test_check_resume_accepts_only_safe_or_named_changes():
   saved = {"train": {"num_steps": 10}, "optim": {"learning_rate": 1e-3}, "mesh": [-1, 1, 1]}
   now = {"train": {"num_steps": 20}, "optim": {"learning_rate": 1e-4}, "mesh": [1, 8, 1]}
