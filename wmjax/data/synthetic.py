@@ -10,7 +10,9 @@ set, so every variant lives in its own directory and is written once.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import io
 import os
 from typing import Any, Iterator
@@ -99,9 +101,27 @@ class SyntheticBuilder(tfds.core.GeneratorBasedBuilder):
       yield index, {"steps": steps, "episode_metadata": {"episode_id": index}}
 
 
+@contextlib.contextmanager
+def _one_writer(data_dir: str, name: str):
+  """Hold an exclusive lock on ``data_dir/.NAME.lock`` (local directories only), so that jobs
+  started together on one machine prepare a dataset once: the others wait, then find it."""
+  if "://" in data_dir:
+    yield
+    return
+  os.makedirs(data_dir, exist_ok=True)
+  with open(os.path.join(data_dir, f".{name}.lock"), "w") as lock:
+    fcntl.flock(lock, fcntl.LOCK_EX)
+    try:
+      yield
+    finally:
+      fcntl.flock(lock, fcntl.LOCK_UN)
+
+
 def prepare(builder_class: type[SyntheticBuilder], data_dir: str, params) -> str:
-  """Write the dataset as ArrayRecord under ``data_dir`` (once); returns the builder directory."""
-  builder = builder_class(params=params, data_dir=os.fspath(data_dir),
-                          file_format="array_record")
-  builder.download_and_prepare()
+  """Write the dataset as ArrayRecord under ``data_dir`` (once, also when several processes ask
+  for it at the same time); returns the builder directory."""
+  data_dir = os.fspath(data_dir)
+  with _one_writer(data_dir, f"{builder_class.name}-{params.name}"):
+    builder = builder_class(params=params, data_dir=data_dir, file_format="array_record")
+    builder.download_and_prepare()
   return os.fspath(builder.data_dir)

@@ -1,0 +1,29 @@
+"""Generated datasets are written once, also when several jobs start together."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.integration
+
+PREPARE = """
+import sys
+from wmjax.tasks.gridworld.dataset import GridworldConfig, prepare
+print(prepare(sys.argv[1], GridworldConfig(image_size=8, square_size=2, episode_length=4,
+                                           train_episodes=4, test_episodes=2, seed=7)))
+"""
+
+
+def test_two_processes_preparing_one_dataset_both_succeed(tmp_path):
+  jobs = [subprocess.Popen([sys.executable, "-c", PREPARE, str(tmp_path)], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True) for _ in range(2)]
+  results = [job.communicate(timeout=600) for job in jobs]
+  for job, (_, err) in zip(jobs, results):
+    assert job.returncode == 0, err[-2000:]
+  paths = {out.strip().splitlines()[-1] for out, _ in results}
+  assert len(paths) == 1
+  (path,) = paths
+  assert os.path.isfile(os.path.join(path, "dataset_info.json"))
+  assert not [d for d in os.listdir(os.path.dirname(path)) if d.startswith("incomplete")]
