@@ -94,7 +94,7 @@ def test_fsdp_activation_memory_stays_with_the_data_parallel_step():
   (Without the constraints this step's FSDP temp memory was 2.9x the data-parallel one.)"""
   d = 128
   overrides = ("model.depth=2", f"model.hidden_size={d}", "model.num_heads=4",
-               "model.num_frames=8", "model.remat='dots'")
+               "model.num_frames=8", "data.frames=8", "model.remat='dots'")
   target = fit.parse_target("cpu:4")
   temps = {}
   for name, mesh in (("dp", "(4, 1, 1)"), ("fsdp", "(1, 4, 1)")):
