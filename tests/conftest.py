@@ -34,7 +34,8 @@ from wmjax.tasks.gridworld import dataset as gridworld  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
-TINY = ("model.depth=2", "model.hidden_size=32", "model.num_heads=2", "model.num_frames=8")
+TINY = ("model.depth=2", "model.hidden_size=32", "model.num_heads=2", "model.num_frames=8",
+        "data.frames=8")
 
 
 def tiny_config(config: str = "irasim.py:S", *overrides: str):
