@@ -10,8 +10,6 @@ import jax.numpy as jnp
 import ml_collections
 import optax
 
-from wmjax.config import OptimConfig  # noqa: F401  (the schema of config.optim; re-exported)
-
 SCHEDULES = ("constant", "warmup", "cosine")
 
 
