@@ -5,8 +5,11 @@ a 1.4M-parameter ST-DiT of 4 layers of width 96, each a temporal block then a sp
 relative 2-D positions (axial RoPE) in the spatial blocks: moving a square by the action happens
 in the spatial blocks after a temporal one, and with RoPE a move by an offset is one rotation of
 the query (experiments/gridworld/RESULTS.md). WPE objective (per-frame noise levels, sigmoid
-schedule, v prediction) with causal temporal attention, 10-step DDIM; rollouts of 1 context
-frame + 5 actions. 1800 steps of batch 8 take about 8 minutes on a 2-core CPU.
+schedule, v prediction) with causal temporal attention; rollouts of 1 context frame + 5 actions,
+sampled one frame after the other (autoregressive scheduling matrix), each frame in 2 DDIM steps
+from the clean frames before it: the network then only ever predicts one step of the dynamics,
+which it does far better than five at once (1.27 -> 0.86 px on the same checkpoint). 1800 steps
+of batch 8 take about 20 minutes on the 2-core CPU VM.
 """
 
 import dataclasses
@@ -36,8 +39,8 @@ def get_config() -> ml_collections.ConfigDict:
   config.diffusion = ml_collections.ConfigDict(dict(
       kind="gaussian", schedule="sigmoid", num_timesteps=1000, prediction="v",
       regime="per_frame", num_context=1))
-  config.sampling = sampling_config(sampler="ddim", num_steps=10, context_level=15.0,
-                                    clip_denoised=True, kv_cache=True)
+  config.sampling = sampling_config(sampler="ddim", num_steps=2, matrix="autoregressive",
+                                    context_level=15.0, clip_denoised=True, kv_cache=True)
   config.rollout = ml_collections.ConfigDict(dict(context=1, horizon=5))
   config.optim = optim_config(learning_rate=3e-3, schedule="cosine", warmup_steps=100,
                               total_steps=1800, b2=0.99, grad_clip=1.0, ema_decay=0.999)

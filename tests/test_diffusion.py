@@ -215,6 +215,11 @@ def test_training_regimes():
   levels, mask = training_levels(gauss, rng, 64, 6, "per_frame")
   assert (mask == 1).all()
   assert (levels != levels[:, :1]).any(axis=1).mean() > 0.9  # independent per frame
+  sorted_levels, mask = training_levels(gauss, rng, 64, 6, "monotone")
+  assert (mask == 1).all()
+  assert (jnp.diff(sorted_levels, axis=1) >= 0).all()  # never cleaner than an earlier frame
+  np.testing.assert_array_equal(sorted_levels, jnp.sort(levels, axis=1))  # the same draws
+  assert (levels != sorted_levels).any()
   flow_levels, _ = training_levels(FlowMatching(), rng, 64, 6, "irasim", num_context=1)
   assert (flow_levels[:, 0] == 0.0).all() and ((flow_levels[:, 1:] > 0) & (flow_levels[:, 1:] < 1)).all()
   with pytest.raises(ValueError, match="noise regime"):

@@ -130,7 +130,7 @@ class DiffusionConfig:
   schedule: str = "linear"  # gaussian: 'linear' | 'cosine' | 'sigmoid'
   num_timesteps: int = 1000
   prediction: str = "eps"  # gaussian: 'eps' | 'x0' | 'v'
-  regime: str = "per_frame"  # 'per_frame' (diffusion forcing) | 'irasim' (clean context)
+  regime: str = "per_frame"  # 'per_frame' (diffusion forcing) | 'monotone' (sorted) | 'irasim'
   num_context: int = 1  # context frames the loss leaves out
 
 

@@ -27,7 +27,7 @@ import numpy as np
 from wmjax.diffusion import schedules
 
 PREDICTIONS = ("eps", "v", "x0")
-NOISE_REGIMES = ("irasim", "per_frame")
+NOISE_REGIMES = ("irasim", "per_frame", "monotone")
 
 
 def broadcast_per_frame(values: jax.Array, like: jax.Array) -> jax.Array:
@@ -232,10 +232,17 @@ def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,
 
   ``irasim``: the first ``num_context`` frames are clean and excluded from the loss; the predicted
   frames share one level per sample. ``per_frame`` (WPE, diffusion forcing): an independent level
-  for every frame, every frame in the loss.
+  for every frame, every frame in the loss. ``monotone``: the same independent levels sorted
+  along time, so that no frame is cleaner than one before it. That is the pattern of every
+  scheduling matrix (full sequence, pyramid, autoregressive); under causal attention a frame's
+  prediction then always comes from a past at most as noisy as itself, and no training goes to
+  a later frame cleaner than an earlier one, which sampling never shows.
   """
-  if regime == "per_frame":
-    return process.sample_levels(rng, (batch, frames)), jnp.ones((batch, frames), jnp.float32)
+  if regime in ("per_frame", "monotone"):
+    levels = process.sample_levels(rng, (batch, frames))
+    if regime == "monotone":
+      levels = jnp.sort(levels, axis=1)
+    return levels, jnp.ones((batch, frames), jnp.float32)
   if regime == "irasim":
     if not 0 < num_context < frames:
       raise ValueError(f"num_context must be in [1, {frames - 1}] for {frames} frames, "
