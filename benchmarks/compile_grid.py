@@ -5,8 +5,10 @@ device target without its hardware (``wmjax.train.fit``); one JSON line per sett
       --batch 8 --batch 16 --remat none --remat dots --config.model.dtype=bfloat16 \
       [--out benchmarks/results/compile-irasim-h100.jsonl]
 
-``--largest`` instead finds, per remat setting, the largest global batch (a multiple of the
-data-parallel size, doubling from it) whose step fits the target's memory.
+``--largest`` instead finds, per remat setting, the largest global batch (the data-parallel size
+times a power of two) whose step fits the target's memory: from ``--start`` (default: one sample
+per device) it doubles while the step fits, or halves until it does. Each line also carries the
+per-device batch.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ def main() -> None:
   parser.add_argument("--batch", type=int, action="append", default=[])
   parser.add_argument("--remat", action="append", default=[], choices=fit.REMAT_LADDER)
   parser.add_argument("--largest", action="store_true")
+  parser.add_argument("--start", type=int, default=None,
+                      help="--largest: per-device batch to start from (a power of two; default 1)")
   parser.add_argument("--out", default=None)
   args, overrides = parse_args_with_overrides(parser)
   jax.config.update("jax_platforms", "cpu")
@@ -40,26 +44,35 @@ def main() -> None:
   out = open(args.out, "a") if args.out else None
 
   def record(report):
-    line = json.dumps({"config": args.config, "overrides": overrides, **report})
+    data_parallel = report["mesh"]["data"] * report["mesh"]["fsdp"]
+    line = json.dumps({"config": args.config, "overrides": overrides,
+                       "per_device_batch": report["batch"] / data_parallel, **report})
     print(line, flush=True)
     if out:
       out.write(line + "\n")
       out.flush()
+    return report
 
+  mesh_devices = len(target.devices) // (config.mesh[2] if config.mesh[2] > 0 else 1)
   for remat in args.remat or list(fit.REMAT_LADDER):
     setting = fit.with_setting(config, remat, 1)
     if not args.largest:
       for batch in args.batch or [config.batch_size]:
         record(fit.compile_train(setting, target, batch))
       continue
-    mesh_devices = len(target.devices) // (config.mesh[2] if config.mesh[2] > 0 else 1)
-    batch = mesh_devices
+    per_device = args.start or 1
+    fits = {}  # per-device batch -> fits
     while True:
-      report = fit.compile_train(setting, target, batch)
-      record(report)
-      if not report["fits"]:
+      report = fit.compile_train(setting, target, per_device * mesh_devices)
+      fits[per_device] = record(report)["fits"]
+      if fits[per_device] and fits.get(per_device * 2) is False:
         break
-      batch *= 2
+      if not fits[per_device] and (per_device == 1 or fits.get(per_device // 2)):
+        break
+      per_device = per_device * 2 if fits[per_device] else per_device // 2
+    largest = max((b for b, ok in fits.items() if ok), default=0)
+    print(f"# {args.config} on {args.target}, remat={remat}: largest per-device batch that fits: "
+          f"{largest or 'none (1 does not fit)'}", flush=True)
   if out:
     out.close()
 

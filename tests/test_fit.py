@@ -72,6 +72,20 @@ def test_targets_parse_and_refuse_clearly():
 
 
 @pytest.mark.integration
+def test_rollout_block_compiles_for_a_target_with_its_memory():
+  """``wmjax compile --what rollout``: one rollout block jitted for the target's first device, its
+  memory against a budget, the sampler's model calls and the analytic FLOPs."""
+  config = tiny_config("gridworld.py", *SMALL, "rollout.horizon=3")
+  report = fit.compile_report(config, fit.parse_target("cpu:2"), "rollout", 2,
+                              budget_bytes=fit.GIB)
+  assert report["what"] == "rollout" and report["devices"] == 1 and report["batch"] == 2
+  assert (report["context"], report["horizon"]) == (1, 3) and report["model_calls"] > 0
+  assert report["fits"] and 0 < report["arguments_gib"] < report["total_gib"] < 1
+  assert report["analytic_flops"] > 0
+  assert "rollout on cpu:2 (batch 2," in fit.describe(report)
+
+
+@pytest.mark.integration
 @pytest.mark.skipif(sys.platform != "linux", reason="libtpu (the [test] extra) is Linux-only")
 def test_train_step_compiles_for_a_tpu_pod_slice_without_one():
   """A v5p:2x2x1 topology (4 chips, from libtpu on this CPU machine): the sharded step compiles
