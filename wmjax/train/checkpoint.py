@@ -15,6 +15,7 @@ from __future__ import annotations
 import glob
 import os
 import shutil
+import time
 from typing import Any
 
 import jax
@@ -91,12 +92,29 @@ class Checkpointer:
   def _failed(self, step: int, error: BaseException):
     self._pending = None
     if jax.process_index() == 0:  # the partial write, e.g. what filled the disk
-      for partial in glob.glob(os.path.join(self.directory, f"{step}{TMP_MARKER}*")):
-        shutil.rmtree(partial, ignore_errors=True)
+      self._remove_partial(step)
     kept = (f"checkpoint {self.last_saved} is intact; fix the cause and rerun to resume from it"
             if self.last_saved is not None else "no checkpoint was saved before it")
     raise CheckpointError(f"saving checkpoint {step} to {self.directory} failed: "
                           f"{describe_error(error)}. Training stopped; {kept}.") from error
+
+  def _remove_partial(self, step: int, quiet_s: float = 1.0, timeout_s: float = 30.0):
+    """Remove the partial write of checkpoint ``step`` until it stays gone for ``quiet_s``.
+
+    Orbax raises at the first failed item while the writers of the other items may still be
+    running; removed under them, they would recreate files in the directory.
+    """
+    pattern = os.path.join(self.directory, f"{step}{TMP_MARKER}*")
+    deadline, quiet_since = time.monotonic() + timeout_s, None
+    while time.monotonic() < deadline:
+      partials = glob.glob(pattern)
+      for partial in partials:
+        shutil.rmtree(partial, ignore_errors=True)
+      now = time.monotonic()
+      quiet_since = None if partials else (quiet_since or now)
+      if quiet_since is not None and now - quiet_since >= quiet_s:
+        return
+      time.sleep(0.1)
 
   def read_config(self, step: int) -> dict:
     """The config saved with checkpoint ``step``; :class:`CheckpointError` naming the item if it
