@@ -102,7 +102,7 @@ def test_a_config_saved_by_an_older_version_loads_with_defaults():
   assert config.data.train_split == "train" and config.data.eval_split == "test"
   assert config.sampling.kv_cache is False and config.optim.grad_accum == 1
   assert config.train.auto_fit is True and config.model.remat == "none"
-  assert config.rollout.to_dict() == {"context": 1, "horizon": 15}
+  assert config.rollout.to_dict() == {"context": 1, "horizon": 15, "short_actions": None}
   assert config.codec.kind == "pixel"
   # the gridworld's own convention: positions before snap_to_pixels existed were sub-pixel
   assert config.data.gridworld.snap_to_pixels is False

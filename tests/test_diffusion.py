@@ -220,6 +220,13 @@ def test_training_regimes():
   assert (jnp.diff(sorted_levels, axis=1) >= 0).all()  # never cleaner than an earlier frame
   np.testing.assert_array_equal(sorted_levels, jnp.sort(levels, axis=1))  # the same draws
   assert (levels != sorted_levels).any()
+  levels, mask = training_levels(gauss, rng, 256, 6, "autoregressive", num_context=2)
+  target = mask.argmax(axis=1)
+  np.testing.assert_array_equal(mask.sum(axis=1), 1)  # one frame in the loss
+  assert set(np.asarray(target).tolist()) == {2, 3, 4, 5}  # never a context frame
+  before = jnp.arange(6)[None, :] < target[:, None]
+  assert (jnp.where(before, levels, -1) == -1).all()  # a clean past
+  assert (jnp.take_along_axis(levels, target[:, None], 1) >= 0).all()
   flow_levels, _ = training_levels(FlowMatching(), rng, 64, 6, "irasim", num_context=1)
   assert (flow_levels[:, 0] == 0.0).all() and ((flow_levels[:, 1:] > 0) & (flow_levels[:, 1:] < 1)).all()
   with pytest.raises(ValueError, match="noise regime"):

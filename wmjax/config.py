@@ -130,7 +130,9 @@ class DiffusionConfig:
   schedule: str = "linear"  # gaussian: 'linear' | 'cosine' | 'sigmoid'
   num_timesteps: int = 1000
   prediction: str = "eps"  # gaussian: 'eps' | 'x0' | 'v'
-  regime: str = "per_frame"  # 'per_frame' (diffusion forcing) | 'monotone' (sorted) | 'irasim'
+  # 'per_frame' (diffusion forcing) | 'monotone' (sorted) | 'irasim' | 'autoregressive' (one
+  # noised frame after a clean past)
+  regime: str = "per_frame"
   num_context: int = 1  # context frames the loss leaves out
 
 
@@ -140,6 +142,9 @@ class RolloutConfig:
 
   context: int = 1
   horizon: int = 15
+  # actions of the IRASim short protocol (1 frame + this many, in chained blocks of at most
+  # ``num_frames - 1``); None: one block of the model's window, ``num_frames - 1``
+  short_actions: int | None = None
 
 
 @dataclasses.dataclass(frozen=True)

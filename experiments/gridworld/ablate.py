@@ -12,6 +12,10 @@ model and of copying the last frame. ``table`` prints the rows as Markdown.
         --config.sampling.sampler=euler --config.sampling.num_steps=1 \\
         --config.sampling.context_level=0.0
     python experiments/gridworld/ablate.py table
+    python experiments/gridworld/ablate.py picture text_vs_raw.png EVAL_DIR_RAW EVAL_DIR_TEXT
+
+``picture`` stacks the ground truth and the predictions of several evaluations of the same
+held-out window (each evaluation's ``videos/VIDEO.png``: ground truth, prediction, difference).
 """
 
 from __future__ import annotations
@@ -24,6 +28,9 @@ import shlex
 import subprocess
 import sys
 import time
+
+import numpy as np
+from PIL import Image
 
 from wmjax.config import parse_args_with_overrides
 
@@ -102,6 +109,39 @@ def table() -> str:
   return "\n".join(lines)
 
 
+def grid_rows(image: np.ndarray) -> list[np.ndarray]:
+  """The rows of a frame grid ``[H, W, 3]`` (:func:`wmjax.eval.video.frame_grid`): the bands
+  between the all-white separator lines."""
+  white = (image == 255).all(axis=(1, 2))
+  rows, start = [], None
+  for y, is_gap in enumerate(np.append(white, True)):
+    if not is_gap and start is None:
+      start = y
+    elif is_gap and start is not None:
+      rows.append(image[start:y])
+      start = None
+  return rows
+
+
+def picture(out: str, eval_dirs: list[str], video: str) -> str:
+  """Ground truth, then each evaluation's prediction of ``video``, one row each."""
+  grids = [np.asarray(Image.open(os.path.join(d, "videos", f"{video}.png")).convert("RGB"))
+           for d in eval_dirs]
+  rows = [grid_rows(g) for g in grids]
+  if any(len(r) != 3 for r in rows) or len({g.shape for g in grids}) != 1:
+    raise ValueError(f"expected frame grids of 3 rows and one shape, got "
+                     f"{[(len(r), g.shape) for r, g in zip(rows, grids)]}")
+  if any(not np.array_equal(r[0], rows[0][0]) for r in rows):
+    raise ValueError("the evaluations show different ground truths: not the same window")
+  gap = np.full((grids[0].shape[0] - 3 * rows[0][0].shape[0]) // 2, 255, np.uint8)
+  bands = [rows[0][0]] + [r[1] for r in rows]
+  parts = [bands[0]]
+  for band in bands[1:]:
+    parts += [np.broadcast_to(gap[:, None, None], (len(gap),) + band.shape[1:]), band]
+  Image.fromarray(np.concatenate(parts)).save(out)
+  return out
+
+
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   sub = parser.add_subparsers(dest="command", required=True)
@@ -117,12 +157,19 @@ def main(argv=None) -> int:
   rec.add_argument("--train_command", required=True, help="the command that trained it")
   rec.add_argument("--train_s", type=float, required=True, help="its training wall time")
   sub.add_parser("table", help="print the rows as Markdown")
+  pic = sub.add_parser("picture", help="ground truth over several evaluations' predictions")
+  pic.add_argument("out", help="the PNG to write")
+  pic.add_argument("eval_dirs", nargs="+", help="evaluation directories (EVAL/videos/VIDEO.png)")
+  pic.add_argument("--video", default="short_000")
   # --config.KEY=VALUE overrides, as for `wmjax train` (for `record`: today's equivalent of its
   # config); an earlier `--` before them is still accepted
   args, args.overrides = parse_args_with_overrides(
       parser, [a for a in (sys.argv[1:] if argv is None else argv) if a != "--"])
-  if args.overrides and args.command == "table":
-    parser.error(f"table takes no overrides, got {args.overrides}")
+  if args.overrides and args.command in ("table", "picture"):
+    parser.error(f"{args.command} takes no overrides, got {args.overrides}")
+  if args.command == "picture":
+    print(picture(args.out, args.eval_dirs, args.video))
+    return 0
   if args.command == "table":
     print(table())
     return 0

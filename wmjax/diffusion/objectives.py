@@ -27,7 +27,7 @@ import numpy as np
 from wmjax.diffusion import schedules
 
 PREDICTIONS = ("eps", "v", "x0")
-NOISE_REGIMES = ("irasim", "per_frame", "monotone")
+NOISE_REGIMES = ("irasim", "per_frame", "monotone", "autoregressive")
 
 
 def broadcast_per_frame(values: jax.Array, like: jax.Array) -> jax.Array:
@@ -237,16 +237,28 @@ def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,
   scheduling matrix (full sequence, pyramid, autoregressive); under causal attention a frame's
   prediction then always comes from a past at most as noisy as itself, and no training goes to
   a later frame cleaner than an earlier one, which sampling never shows.
+  ``autoregressive`` (teacher forcing): one frame ``k >= num_context`` per sample, drawn
+  uniformly, is noised and alone in the loss; the frames before it are clean. That is what
+  sampling one frame after the other (the ``autoregressive`` scheduling matrix) asks of a causal
+  network: every prediction from a clean past. The frames after ``k`` take independent levels;
+  under causal attention they cannot reach frame ``k``.
   """
   if regime in ("per_frame", "monotone"):
     levels = process.sample_levels(rng, (batch, frames))
     if regime == "monotone":
       levels = jnp.sort(levels, axis=1)
     return levels, jnp.ones((batch, frames), jnp.float32)
-  if regime == "irasim":
+  if regime in ("irasim", "autoregressive"):
     if not 0 < num_context < frames:
       raise ValueError(f"num_context must be in [1, {frames - 1}] for {frames} frames, "
                        f"got {num_context}")
+    if regime == "autoregressive":
+      frame_key, level_key = jax.random.split(rng)
+      target = jax.random.randint(frame_key, (batch, 1), num_context, frames)
+      steps = jnp.arange(frames)[None, :]
+      levels = process.sample_levels(level_key, (batch, frames))
+      levels = jnp.where(steps < target, jnp.asarray(process.clean_level, levels.dtype), levels)
+      return levels, (steps == target).astype(jnp.float32)
     shared = process.sample_levels(rng, (batch, 1))
     is_context = jnp.arange(frames)[None, :] < num_context
     levels = jnp.where(is_context, jnp.asarray(process.clean_level, shared.dtype), shared)

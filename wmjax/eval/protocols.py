@@ -2,8 +2,9 @@
 
 IRASim (appendix 11):
   ``short``  windows of ``1 + H`` frames taken with stride ``1 + H`` from every episode
-             (``H = model.num_frames - 1``: 15 for IRASim); one block of ``H`` frames from the
-             first frame under the ``H`` true actions.
+             (``H = rollout.short_actions``, by default ``model.num_frames - 1``: 15 for
+             IRASim); the ``H`` frames after the first under the ``H`` true actions, in one block
+             or, for a model whose window is shorter, chained blocks of ``num_frames - 1``.
   ``long``   whole episodes: from the first ``rollout.context`` frames, blocks of
              ``rollout.horizon`` frames chained to the end of the episode.
 WPE (figure 7): a context / horizon sweep. One of ``c`` and ``h`` stays at the config's value
@@ -90,12 +91,13 @@ def evaluate_protocols(model: LoadedModel, episodes: ArrayRecordEpisodes, *,
   num_frames = config.model.num_frames
   results, videos = {}, {}
   if "short" in protocols:
-    windows = windows_of(episodes, num_frames, resolution, max_trajectories)
-    outcome = run_rollouts(model, stack(windows), first=0, context=1,
-                           horizon=num_frames - 1, rng=jax.random.fold_in(rng, 0),
-                           batch_size=batch_size, keep_videos=keep_videos, frechet=frechet,
-                           task=task)
-    results["short"] = dict(outcome.summary(), context=1, horizon=num_frames - 1)
+    actions = config.rollout.short_actions or num_frames - 1
+    windows = windows_of(episodes, 1 + actions, resolution, max_trajectories)
+    block = min(actions, num_frames - 1)
+    outcome = run_rollouts(model, stack(windows), first=0, context=1, horizon=block,
+                           rng=jax.random.fold_in(rng, 0), batch_size=batch_size,
+                           keep_videos=keep_videos, frechet=frechet, task=task)
+    results["short"] = dict(outcome.summary(), context=1, horizon=block, actions=actions)
     if frechet is not None:
       results["short"]["frechet"] = frechet.result()
     videos["short"] = outcome.videos
