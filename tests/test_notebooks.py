@@ -23,12 +23,23 @@ def test_notebook_is_stored_without_outputs(path):
       assert cell.outputs == [] and cell.execution_count is None, f"{path.name}: strip outputs"
 
 
+# the notebooks on the gridworld share one model: the first to run trains it (its training cell),
+# the next loads it (its loading path), as after the README quickstart
+GRIDWORLD_NOTEBOOKS = ("keyboard_control", "quickstart")
+
+
+@pytest.fixture(scope="module")
+def gridworld_workdir(tmp_path_factory):
+  return tmp_path_factory.mktemp("notebook_gridworld") / "model"
+
+
 @pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
-def test_notebook_runs(path, tmp_path, monkeypatch):
+def test_notebook_runs(path, tmp_path, monkeypatch, gridworld_workdir):
   monkeypatch.setenv("WMJAX_NOTEBOOK_SMOKE", "1")
-  monkeypatch.setenv("WMJAX_NOTEBOOK_WORKDIR", str(tmp_path / "model"))
+  workdir = gridworld_workdir if path.stem in GRIDWORLD_NOTEBOOKS else tmp_path / "model"
+  monkeypatch.setenv("WMJAX_NOTEBOOK_WORKDIR", str(workdir))
   notebook = nbformat.read(path, as_version=4)
   NotebookClient(notebook, timeout=900, kernel_name="python3",
                  resources={"metadata": {"path": str(path.parent)}}).execute()
