@@ -231,6 +231,19 @@ def test_evaluate_command_writes_metrics_report_and_videos(workdir, tmp_path):
 
 
 @pytest.mark.integration
+def test_short_protocol_chains_blocks_beyond_the_window(workdir, tmp_path):
+  """``rollout.short_actions`` longer than the 6-frame window: 1 frame + 7 actions, generated in
+  chained blocks of 5, every one of the 7 frames scored."""
+  out = tmp_path / "eval"
+  assert cli.main(["evaluate", "--workdir", workdir, "--out", str(out), "--protocols", "short",
+                   "--videos", "0", "--config.rollout.short_actions=7"]) == 0
+  short = json.loads((out / "metrics.json").read_text())["short"]
+  assert short["actions"] == 7 and short["horizon"] == 5
+  assert short["trajectories"] == 3  # 14 steps -> 1 window of 8 per episode
+  assert len(short["model"]["square_error_px"]["per_frame"]) == 7
+
+
+@pytest.mark.integration
 def test_rollout_command_applies_the_checkpoint_normalisation(workdir, tmp_path):
   model = load_model(workdir)
   config = gridworld.GridworldConfig(num_squares=2, image_size=16, square_size=4)
