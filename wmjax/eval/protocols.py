@@ -91,7 +91,12 @@ def evaluate_protocols(model: LoadedModel, episodes: ArrayRecordEpisodes, *,
   num_frames = config.model.num_frames
   results, videos = {}, {}
   if "short" in protocols:
-    actions = config.rollout.short_actions or num_frames - 1
+    actions = config.rollout.short_actions
+    if actions is None:
+      actions = num_frames - 1
+    elif actions < 1:
+      raise ValueError(f"rollout.short_actions must be a positive number of actions or None, "
+                       f"got {actions}")
     windows = windows_of(episodes, 1 + actions, resolution, max_trajectories)
     block = min(actions, num_frames - 1)
     outcome = run_rollouts(model, stack(windows), first=0, context=1, horizon=block,
