@@ -3,6 +3,7 @@
 Tests run on 8 simulated CPU devices so that sharding is exercised.
 """
 
+import functools
 import os
 import shutil
 import tempfile
@@ -25,8 +26,10 @@ os.environ.update(JAX_COMPILATION_CACHE_DIR=os.environ[_CACHE_VARIABLE],
 
 from pathlib import Path  # noqa: E402  (the variables above must be set before jax is imported)
 
+import flax.linen as nn  # noqa: E402
 import jax  # noqa: E402
 import pytest  # noqa: E402
+from jax import flatten_util  # noqa: E402
 
 from wmjax.config import load_config  # noqa: E402
 from wmjax.model import WorldModel  # noqa: E402
@@ -43,12 +46,18 @@ def tiny_config(config: str = "irasim.py:S", *overrides: str):
   return load_config(str(ROOT / "configs" / config), TINY + overrides)
 
 
+@functools.partial(jax.jit, static_argnames="scale")
 def perturbed(params, key, scale: float = 0.1):
   """Add noise to every parameter: adaLN-Zero makes a fresh model ignore its conditioning."""
-  leaves, treedef = jax.tree.flatten(params)
-  keys = jax.random.split(key, len(leaves))
-  return jax.tree.unflatten(
-      treedef, [x + scale * jax.random.normal(k, x.shape, x.dtype) for x, k in zip(leaves, keys)])
+  flat, unravel = flatten_util.ravel_pytree(params)
+  return unravel(flat + scale * jax.random.normal(key, flat.shape, flat.dtype))
+
+
+def jit_apply(module: nn.Module):
+  """``module.apply``, compiled once per input shape. Called eagerly, a Flax module runs every
+  operation as its own XLA program, and compiling those hundreds of programs is most of a test's
+  time on a CPU."""
+  return jax.jit(module.apply, static_argnames=("method", "train", "mutable"))
 
 
 def tiny_world_model(config: str = "irasim.py:S", *overrides: str, frame_shape=(8, 8, 4), seed=0):

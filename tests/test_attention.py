@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import tiny_world_model
+from conftest import jit_apply, tiny_world_model
 from wmjax.nn import attention
 from wmjax.nn.attention import attend, prefix_causal_mask, resolve_backend
 
@@ -164,8 +164,8 @@ def test_whole_model_with_splash_equals_xla(config, channels, monkeypatch):
   x = jax.random.normal(jax.random.key(1), (1, 3, 32, 32, channels))
   t = jnp.asarray([[0.0, 400.0, 800.0]])
   actions = jax.random.normal(jax.random.key(2), (1, 2, wm.network.action_dim))
-  want = wm.network.apply(params, x, t, actions)
-  got = splash.network.apply(params, x, t, actions)
+  want = jit_apply(wm.network)(params, x, t, actions)
+  got = jit_apply(splash.network)(params, x, t, actions)
   assert lengths and set(lengths) == {256}
   assert float(jnp.abs(want).mean()) > 0
   np.testing.assert_allclose(got, want, atol=1e-4, rtol=1e-4)

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import ROOT, perturbed, tiny_config
+from conftest import ROOT, jit_apply, perturbed, tiny_config
 from wmjax.config import load_config
 from wmjax.nn import STDiT, forward_flops, layers
 from wmjax.model import WorldModel
@@ -44,7 +44,7 @@ def _model(cond="frame", **kw):
   fields.update(kw)
   model = STDiT(**fields)
   x, t, a = _inputs(2, 6, 8, 8, 4, 7)
-  params = perturbed(model.init(jax.random.key(0), x, t, a), jax.random.key(1))
+  params = perturbed(jax.jit(model.init)(jax.random.key(0), x, t, a), jax.random.key(1))
   return model, params, (x, t, a)
 
 
@@ -52,9 +52,10 @@ def _model(cond="frame", **kw):
 def test_action_j_conditions_frame_j_plus_1_only(cond):
   """Causal temporal mask: changing action j changes no frame before j+1, and does change j+1."""
   model, params, (x, t, a) = _model(cond)
-  base = model.apply(params, x, t, a)
+  apply = jit_apply(model)
+  base = apply(params, x, t, a)
   for j in range(a.shape[1]):
-    out = model.apply(params, x, t, a.at[:, j].add(1.0))
+    out = apply(params, x, t, a.at[:, j].add(1.0))
     diff = jnp.abs(out - base).reshape(out.shape[0], out.shape[1], -1).max(-1)  # [B, T]
     assert float(diff[:, : j + 1].max()) == 0.0, f"action {j} leaked into frames <= {j}"
     assert float(diff[:, j + 1].min()) > 1e-4, f"action {j} did not change frame {j + 1}"
@@ -62,43 +63,46 @@ def test_action_j_conditions_frame_j_plus_1_only(cond):
 
 def test_frame_zero_and_masked_frames_use_null_embedding():
   model, params, (_, t, a) = _model("frame")
-  spatial, temporal, final = model.apply(params, t, a, method=STDiT.conditioning)
-  temb = model.apply(params, t, method=lambda m, t: m.time_embed(t))
+  apply = jit_apply(model)
+  spatial, temporal, final = apply(params, t, a, method=STDiT.conditioning)
+  temb = apply(params, t, method=lambda m, t: m.time_embed(t))
   null = params["params"]["null_action"].value
   np.testing.assert_allclose(spatial[:, 0], temb[:, 0] + null, rtol=1e-5, atol=1e-6)
   np.testing.assert_allclose(temporal, temb, rtol=1e-5, atol=1e-6)  # IRASim: timestep only
   np.testing.assert_allclose(final, spatial)
   assert float(jnp.abs(spatial[:, 1:] - (temb[:, 1:] + null)).min()) > 0  # real actions differ
   mask = jnp.ones(a.shape[:2], bool).at[:, 2].set(False)
-  masked, _, _ = model.apply(params, t, a, mask, method=STDiT.conditioning)
+  masked, _, _ = apply(params, t, a, mask, method=STDiT.conditioning)
   np.testing.assert_allclose(masked[:, 3], temb[:, 3] + null, rtol=1e-5, atol=1e-6)
-  dropped, _, _ = model.apply(params, t, a, None, jnp.array([True, False]),
-                              method=STDiT.conditioning)
+  dropped, _, _ = apply(params, t, a, None, jnp.array([True, False]), method=STDiT.conditioning)
   np.testing.assert_allclose(dropped[0], temb[0] + null, rtol=1e-5, atol=1e-6)
   np.testing.assert_allclose(dropped[1], spatial[1], rtol=1e-6)
 
 
 def test_video_mode_conditions_every_frame_on_the_whole_trajectory():
   model, params, (x, t, a) = _model("video")
-  base = model.apply(params, x, t, a)
-  out = model.apply(params, x, t, a.at[:, -1].add(1.0))  # the last action only
+  apply = jit_apply(model)
+  base = apply(params, x, t, a)
+  out = apply(params, x, t, a.at[:, -1].add(1.0))  # the last action only
   diff = jnp.abs(out - base).reshape(out.shape[0], out.shape[1], -1).max(-1)
   assert float(diff.min()) > 1e-4  # even frame 0, despite the causal mask
 
 
 def test_trajectory_in_temporal_variant_reaches_earlier_frames():
   model, params, (x, t, a) = _model("frame", trajectory_in_temporal=True)
-  base = model.apply(params, x, t, a)
-  out = model.apply(params, x, t, a.at[:, -1].add(1.0))
+  apply = jit_apply(model)
+  base = apply(params, x, t, a)
+  out = apply(params, x, t, a.at[:, -1].add(1.0))
   assert float(jnp.abs(out - base)[:, 0].max()) > 1e-4
 
 
 def test_action_dropout_in_training_uses_null_embedding():
   model, params, (x, t, a) = _model("frame", action_dropout=1.0)
-  train_out = model.apply(params, x, t, a, train=True, rngs={"dropout": jax.random.key(0)})
-  null_out = model.apply(params, x, t, a, None, jnp.ones((2,), bool))
+  apply = jit_apply(model)
+  train_out = apply(params, x, t, a, train=True, rngs={"dropout": jax.random.key(0)})
+  null_out = apply(params, x, t, a, None, jnp.ones((2,), bool))
   np.testing.assert_allclose(train_out, null_out, rtol=1e-6)
-  assert float(jnp.abs(model.apply(params, x, t, a) - null_out).max()) > 1e-4
+  assert float(jnp.abs(apply(params, x, t, a) - null_out).max()) > 1e-4
 
 
 def test_parameters_carry_logical_axes():
@@ -120,8 +124,8 @@ def test_scanned_and_unrolled_layers_agree():
   stacked = p["blocks"]["layers"]
   p_unrolled = dict(p, blocks={f"layer_{i}": jax.tree.map(lambda v: v[i], stacked)
                                for i in range(model.depth // 2)})
-  np.testing.assert_allclose(unrolled.apply({"params": p_unrolled}, x, t, a),
-                             model.apply(params, x, t, a), rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(jit_apply(unrolled)({"params": p_unrolled}, x, t, a),
+                             jit_apply(model)(params, x, t, a), rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.parametrize("policy", ["full", "dots", "dots_all"])
@@ -129,10 +133,10 @@ def test_remat_policies_change_nothing_but_memory(policy):
   model, params, (x, t, a) = _model("frame")
   rematted = model.clone(remat=policy)
   loss = lambda m: (lambda p: jnp.mean(m.apply(p, x, t, a) ** 2))
-  np.testing.assert_allclose(rematted.apply(params, x, t, a), model.apply(params, x, t, a),
+  np.testing.assert_allclose(jit_apply(rematted)(params, x, t, a), jit_apply(model)(params, x, t, a),
                              rtol=1e-6, atol=1e-6)
-  g_remat = jax.grad(loss(rematted))(params)
-  g_plain = jax.grad(loss(model))(params)
+  g_remat = jax.jit(jax.grad(loss(rematted)))(params)
+  g_plain = jax.jit(jax.grad(loss(model)))(params)
   for u, v in zip(jax.tree.leaves(g_remat), jax.tree.leaves(g_plain)):
     np.testing.assert_allclose(u, v, rtol=1e-5, atol=1e-6)
   with pytest.raises(ValueError, match="remat must be one of"):
@@ -142,8 +146,9 @@ def test_remat_policies_change_nothing_but_memory(policy):
 def test_bf16_compute_keeps_float32_params():
   model, params, (x, t, a) = _model("frame")
   bf16 = model.clone(dtype="bfloat16")
-  assert all(v.dtype == jnp.float32 for v in jax.tree.leaves(bf16.init(jax.random.key(0), x, t, a)))
-  ref, out = model.apply(params, x, t, a), bf16.apply(params, x, t, a)
+  assert all(v.dtype == jnp.float32
+             for v in jax.tree.leaves(jax.eval_shape(bf16.init, jax.random.key(0), x, t, a)))
+  ref, out = jit_apply(model)(params, x, t, a), jit_apply(bf16)(params, x, t, a)
   assert out.dtype == jnp.float32 and bool(jnp.isfinite(out).all())
   assert float(jnp.abs(out - ref).max()) < 0.1 * float(jnp.abs(ref).max()) + 1e-3
 
@@ -152,7 +157,7 @@ def test_bf16_compute_keeps_float32_params():
                                     dict(temporal_pos="rope", spatial_pos="rope")])
 def test_rope_positions_run(fields):
   model, params, (x, t, a) = _model("frame", **fields)
-  out = model.apply(params, x, t, a)
+  out = jit_apply(model)(params, x, t, a)
   assert out.shape == x.shape and bool(jnp.isfinite(out).all())
 
 
@@ -176,7 +181,7 @@ def test_flop_counter_matches_xla(cond):
   model = STDiT(in_channels=4, patch_size=2, depth=4, hidden_size=256, num_heads=4,
                 num_frames=8, action_dim=7, cond=cond, scan_layers=False)  # XLA counts a loop body once
   x, t, a = _inputs(2, 8, 16, 16, 4, 7)
-  params = model.init(jax.random.key(0), x, t, a)
+  params = jax.jit(model.init)(jax.random.key(0), x, t, a)
   cost = jax.jit(model.apply).lower(params, x, t, a).compile().cost_analysis()
   cost = cost[0] if isinstance(cost, (list, tuple)) else cost
   analytic = forward_flops(model, 2, 8, 16, 16)
@@ -201,7 +206,7 @@ def test_bad_shapes_raise_clear_errors(shape_change, message):
   dims.update(shape_change)
   x, t, a = _inputs(**dims)
   with pytest.raises(ValueError, match=message):
-    model.apply(params, x, t, a)
+    jit_apply(model)(params, x, t, a)
 
 
 def test_world_model_from_config_rejects_mismatched_sampler():
@@ -214,8 +219,9 @@ def test_world_model_from_config_rejects_mismatched_sampler():
 
 
 def _cached_output(model, params, x, t, a, c, mask=None, drop=None):
-  cache = model.apply(params, x[:, :c], t[:, :c], a, mask, drop, method="encode_context")
-  return model.apply(params, cache, x[:, c:], t[:, c:], a, mask, drop, method="extend")
+  apply = jit_apply(model)
+  cache = apply(params, x[:, :c], t[:, :c], a, mask, drop, method="encode_context")
+  return apply(params, cache, x[:, c:], t[:, c:], a, mask, drop, method="extend")
 
 
 @pytest.mark.parametrize("cond,fields,c", [
@@ -231,7 +237,7 @@ def test_extend_after_the_cached_context_equals_the_whole_window(cond, fields, c
   model, params, (x, t, a) = _model(cond, **fields)
   mask = jnp.asarray([[True] * 5, [True, False, True, True, False]])
   drop = jnp.asarray([False, True])
-  whole = model.apply(params, x, t, a, mask, drop)
+  whole = jit_apply(model)(params, x, t, a, mask, drop)
   got = _cached_output(model, params, x, t, a, c, mask, drop)
   assert got.shape == x[:, c:].shape
   np.testing.assert_allclose(got, whole[:, c:], rtol=1e-5, atol=1e-5)
@@ -243,7 +249,7 @@ def test_extend_after_the_cached_context_equals_the_whole_window(cond, fields, c
 def test_kv_cache_needs_causal_temporal_attention():
   model, params, (x, t, a) = _model("frame", causal_temporal=False)
   with pytest.raises(ValueError, match="needs model.causal_temporal=True"):
-    model.apply(params, x[:, :2], t[:, :2], a, method="encode_context")
+    jit_apply(model)(params, x[:, :2], t[:, :2], a, method="encode_context")
   config = tiny_config("irasim.py:S", "sampling.kv_cache=True")
   with pytest.raises(ValueError, match="sampling.kv_cache=True needs model.causal_temporal=True"):
     WorldModel.from_config(config)
@@ -252,15 +258,15 @@ def test_kv_cache_needs_causal_temporal_attention():
 def test_kv_cache_inputs_are_checked():
   model, params, (x, t, a) = _model("frame")
   with pytest.raises(ValueError, match="must leave frames to generate in the window of 6"):
-    model.apply(params, x, t, a, method="encode_context")
-  cache = model.apply(params, x[:, :2], t[:, :2], a, method="encode_context")
+    jit_apply(model)(params, x, t, a, method="encode_context")
+  cache = jit_apply(model)(params, x[:, :2], t[:, :2], a, method="encode_context")
   assert [k.shape for k in cache] == [(1, 2 * 16, 2, 2, 16)] * 2  # [layers, B*P, c, H, d]
   with pytest.raises(ValueError, match=r"a cache of 2 frames and 3 new frames make 5, but the "
                                        r"actions describe a window of 6"):
-    model.apply(params, cache, x[:, 3:], t[:, 3:], a, method="extend")
+    jit_apply(model)(params, cache, x[:, 3:], t[:, 3:], a, method="extend")
   with pytest.raises(ValueError, match=r"\[layers, B\*P, c, heads, head_dim\] = \(1, 32, 2, 2, 16\)"):
-    model.apply(params, jax.tree.map(lambda k: k[:, :16], cache), x[:, 2:], t[:, 2:], a,
-                method="extend")
+    jit_apply(model)(params, jax.tree.map(lambda k: k[:, :16], cache), x[:, 2:], t[:, 2:], a,
+                     method="extend")
 
 
 def test_sampling_flops_count_a_cached_context_once(capsys):
@@ -285,6 +291,7 @@ def test_sampling_flops_count_a_cached_context_once(capsys):
 def test_temporal_first_changes_the_block_order_not_the_parameters():
   model, params, (x, t, a) = _model("per_frame")
   reordered = model.clone(temporal_first=True)
-  assert (jax.tree.map(jnp.shape, reordered.init(jax.random.key(0), x, t, a))
+  assert (jax.tree.map(jnp.shape, jax.eval_shape(reordered.init, jax.random.key(0), x, t, a))
           == jax.tree.map(jnp.shape, params))
-  assert float(jnp.abs(reordered.apply(params, x, t, a) - model.apply(params, x, t, a)).max()) > 1e-4
+  assert float(jnp.abs(jit_apply(reordered)(params, x, t, a)
+                       - jit_apply(model)(params, x, t, a)).max()) > 1e-4

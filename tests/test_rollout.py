@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import tiny_world_model
+from conftest import jit_apply, tiny_world_model
 from wmjax.env import WorldModelEnv
 from wmjax.rollout import rollout, sample_block
 
@@ -95,10 +95,11 @@ def test_guidance_combines_conditional_and_null_outputs():
   levels = jnp.full((2, 4), 500)
   actions = jax.random.normal(jax.random.key(1), (2, 3, 7))
   mask = jnp.ones((2, 3), bool)
-  got = wm.denoise(params, x, levels, actions, mask)
+  got = jax.jit(wm.denoise)(params, x, levels, actions, mask)
   t = wm.process.model_time(levels)
-  cond = wm.network.apply(params, x, t, actions, mask)
-  null = wm.network.apply(params, x, t, actions, mask, jnp.ones((2,), bool))
+  apply = jit_apply(wm.network)
+  cond = apply(params, x, t, actions, mask)
+  null = apply(params, x, t, actions, mask, jnp.ones((2,), bool))
   np.testing.assert_allclose(got, null + 3.0 * (cond - null), rtol=1e-4, atol=1e-4)
 
 

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import perturbed, tiny_config
+from conftest import jit_apply, perturbed, tiny_config
 from wmjax.nn import STDiT
 from wmjax.nn.text_actions import MINUS, PLUS, POINT, SEPARATOR, action_tokens
 
@@ -27,18 +27,20 @@ def _text_model(cond="per_frame"):
   k = jax.random.split(jax.random.key(0), 3)
   x, t, a = (jax.random.normal(k[0], (2, 4, 8, 8, 4)), jax.random.uniform(k[1], (2, 4)) * 999,
              jax.random.normal(k[2], (2, 3, 7)))
-  return model, perturbed(model.init(jax.random.key(0), x, t, a), jax.random.key(1)), (x, t, a)
+  params = perturbed(jax.jit(model.init)(jax.random.key(0), x, t, a), jax.random.key(1))
+  return model, params, (x, t, a)
 
 
 def test_text_encoded_actions_condition_their_frame():
   model, params, (x, t, a) = _text_model()
-  base = model.apply(params, x, t, a)
-  moved = model.apply(params, x, t, a.at[:, 1].add(0.5))  # action 1 moves frame 1 to frame 2
+  apply = jit_apply(model)
+  base = apply(params, x, t, a)
+  moved = apply(params, x, t, a.at[:, 1].add(0.5))  # action 1 moves frame 1 to frame 2
   diff = jnp.abs(moved - base).reshape(2, 4, -1).max(-1)
   assert float(diff[:, :2].max()) == 0.0 and float(diff[:, 2].min()) > 1e-4
   # a change below the written precision is invisible to the text encoding
-  same = model.apply(params, x, t, jnp.round(a * 100) / 100 + 1e-4)
-  np.testing.assert_allclose(same, model.apply(params, x, t, jnp.round(a * 100) / 100), atol=1e-6)
+  same = apply(params, x, t, jnp.round(a * 100) / 100 + 1e-4)
+  np.testing.assert_allclose(same, apply(params, x, t, jnp.round(a * 100) / 100), atol=1e-6)
 
 
 def test_text_encoding_needs_one_action_per_frame():

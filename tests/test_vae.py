@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import safetensors.numpy
 
+from conftest import jit_apply
 from wmjax.codecs import PatchCodec, PixelCodec, codec_config, make_codec
 from wmjax.nn.vae import load_diffusers
 
@@ -36,11 +37,12 @@ def test_encode_and_decode_match_diffusers(tmp_path, layout):
     logvar = posterior.logvar.permute(0, 2, 3, 1).numpy()
     z = np.random.default_rng(1).normal(size=mean.shape).astype(np.float32)
     decoded = vae.decode(torch.from_numpy(z).permute(0, 3, 1, 2)).sample.permute(0, 2, 3, 1)
-  our_mean, our_logvar = module.apply(params, jnp.asarray(x), method="encode")
+  apply = jit_apply(module)
+  our_mean, our_logvar = apply(params, jnp.asarray(x), method="encode")
   assert our_mean.shape == mean.shape == (2, 16, 12, LAYOUTS[layout]["latent_channels"])
   assert _relative_error(our_mean, mean) < 1e-4
   assert _relative_error(our_logvar, logvar) < 1e-4
-  assert _relative_error(module.apply(params, jnp.asarray(z), method="decode"),
+  assert _relative_error(apply(params, jnp.asarray(z), method="decode"),
                          decoded.numpy()) < 1e-4
 
 
@@ -51,10 +53,11 @@ def test_vae_codec_applies_scaling_and_shift_over_video_axes(tmp_path):
   frames = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (2, 5, 32, 24, 3)), jnp.float32)
   latents = codec.encode(frames)
   assert latents.shape == (2, 5) + codec.latent_shape((32, 24, 3)) == (2, 5, 16, 12, 16)
-  mean, _ = codec.module.apply(codec.params, frames.reshape(-1, 32, 24, 3), method="encode")
+  apply = jit_apply(codec.module)
+  mean, _ = apply(codec.params, frames.reshape(-1, 32, 24, 3), method="encode")
   np.testing.assert_allclose(latents.reshape(mean.shape), (mean - 0.0609) * 1.5305, atol=1e-4)
   decoded = codec.decode(latents)
-  expected = codec.module.apply(codec.params, mean, method="decode")
+  expected = apply(codec.params, mean, method="decode")
   np.testing.assert_allclose(decoded.reshape(expected.shape), np.clip(expected, -1, 1), atol=1e-4)
   assert codec.image_shape((16, 12, 16)) == (32, 24, 3)
   sampling = make_codec(codec_config(kind="vae", path=str(tmp_path / "sd3"), sample=True))

@@ -55,11 +55,12 @@ class WorldModel:
 
   def init(self, rng: jax.Array, frame_shape: tuple[int, int, int], frames: int | None = None
            ) -> Params:
-    """Initial variables for frames of ``frame_shape = (H, W, C)``."""
+    """Initial variables for frames of ``frame_shape = (H, W, C)``, compiled as one program (run
+    eagerly, every initialiser and layer would be an XLA program of its own)."""
     n = frames or self.network.num_frames
     x = jnp.zeros((1, n) + tuple(frame_shape), jnp.float32)
     actions = jnp.zeros((1, n - 1, self.network.action_dim), jnp.float32)
-    return self.network.init(rng, x, jnp.zeros((1, n), jnp.float32), actions)
+    return jax.jit(self.network.init)(rng, x, jnp.zeros((1, n), jnp.float32), actions)
 
   # Classifier-free guidance runs the network on the batch twice, conditional then null.
 
