@@ -160,7 +160,7 @@ def test_ctrl_c_saves_and_exits_130(data_dir, tmp_path, monkeypatch):
 def test_resume_refuses_a_changed_config_and_keeps_config_json(run, data_dir):
   """2: a changed objective is refused with the differing key; config.json is untouched."""
   before = (run / "config.json").read_text()
-  with pytest.raises(ConfigChangeError, match=r"(?s)diffusion.prediction: 'v' \(checkpoint\) -> "
+  with pytest.raises(ConfigChangeError, match=r"(?s)diffusion.prediction: 'x0' \(checkpoint\) -> "
                      r"'eps' \(now\).*--allow_config_change=diffusion.prediction"):
     train(_config(data_dir, **{"diffusion.prediction": "eps"}), str(run))
   assert (run / "config.json").read_text() == before
