@@ -39,11 +39,17 @@ if TYPE_CHECKING:
 def grayscale(frames) -> jax.Array:
   """RGB ``[..., H, W, 3]`` -> BT.601 luma ``[..., H, W, 1]`` in [0, 1], quantised to uint8 with
   OpenCV's fixed-point arithmetic (``(4899 R + 9617 G + 1868 B + 8192) >> 14``)."""
-  rgb = jnp.asarray(frames)
-  if rgb.dtype != jnp.uint8:
-    rgb = jnp.round(to_unit(rgb) * 255.0).astype(jnp.uint8)
-  if rgb.shape[-1] != 3:
-    raise ValueError(f"grayscale needs RGB frames [..., H, W, 3], got {rgb.shape}")
+  if np.shape(frames)[-1:] != (3,):
+    raise ValueError(f"grayscale needs RGB frames [..., H, W, 3], got {np.shape(frames)}")
+  return _luma(jnp.asarray(frames))
+
+
+# The metrics check their inputs in Python and compute in one compiled program each: run op by op,
+# every operation would be its own small XLA program, compiled once per shape.
+@jax.jit
+def _luma(frames: jax.Array) -> jax.Array:
+  rgb = frames if frames.dtype == jnp.uint8 else jnp.round(to_unit(frames) * 255.0).astype(
+      jnp.uint8)
   weights = jnp.array([4899, 9617, 1868], jnp.int32)
   luma = ((rgb.astype(jnp.int32) * weights).sum(-1, keepdims=True) + 8192) >> 14
   return luma.astype(jnp.float32) / 255.0
@@ -60,14 +66,23 @@ def _check_pair(pred, target) -> None:
 def latent_l2(pred, target) -> jax.Array:
   """Mean squared difference of raw values per frame ``[...]`` (IRASim's latent L2 on latents)."""
   _check_pair(pred, target)
-  diff = jnp.asarray(pred, jnp.float32) - jnp.asarray(target, jnp.float32)
-  return jnp.mean(diff ** 2, axis=(-3, -2, -1))
+  return _mean_square(jnp.asarray(pred, jnp.float32), jnp.asarray(target, jnp.float32))
+
+
+@jax.jit
+def _mean_square(a: jax.Array, b: jax.Array) -> jax.Array:
+  return jnp.mean(jnp.square(a - b), axis=(-3, -2, -1))
 
 
 def mse(pred, target) -> jax.Array:
   """Pixel MSE per frame on [0, 1] images."""
   _check_pair(pred, target)
-  return latent_l2(to_unit(pred), to_unit(target))
+  return _pixel_mse(jnp.asarray(pred), jnp.asarray(target))
+
+
+@jax.jit
+def _pixel_mse(pred: jax.Array, target: jax.Array) -> jax.Array:
+  return _mean_square(to_unit(pred), to_unit(target))
 
 
 def masked_mse(pred, target, mask) -> jax.Array:
@@ -76,7 +91,11 @@ def masked_mse(pred, target, mask) -> jax.Array:
   _check_pair(pred, target)
   if np.shape(mask) != np.shape(pred)[:-1]:
     raise ValueError(f"mask must be [..., H, W] = {np.shape(pred)[:-1]}, got {np.shape(mask)}")
-  mask = jnp.asarray(mask, bool)
+  return _masked_mse(jnp.asarray(pred), jnp.asarray(target), jnp.asarray(mask, bool))
+
+
+@jax.jit
+def _masked_mse(pred: jax.Array, target: jax.Array, mask: jax.Array) -> jax.Array:
   squared = jnp.mean((to_unit(pred) - to_unit(target)) ** 2, axis=-1)
   count = mask.sum((-2, -1))
   total = jnp.where(mask, squared, 0.0).sum((-2, -1))
@@ -85,7 +104,13 @@ def masked_mse(pred, target, mask) -> jax.Array:
 
 def psnr(pred, target, max_db: float = 100.0) -> jax.Array:
   """PSNR (dB) per frame on [0, 1] images; identical frames give ``max_db`` instead of +inf."""
-  error = mse(pred, target)
+  _check_pair(pred, target)
+  return _psnr(jnp.asarray(pred), jnp.asarray(target), max_db)
+
+
+@jax.jit
+def _psnr(pred: jax.Array, target: jax.Array, max_db: float) -> jax.Array:
+  error = _pixel_mse(pred, target)
   db = 10.0 * jnp.log10(1.0 / error)
   return jnp.where(error > 0, jnp.minimum(db, max_db), max_db)
 
