@@ -5,9 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wmjax.diffusion import (FlowMatching, GaussianDiffusion, SamplerConfig, classifier_free_guidance,
-                             context_inputs, ddim_step, diffusion_loss, make_betas, sample_window,
-                             scheduling_matrix, training_levels, window_denoiser)
+from wmjax.diffusion import (FlowMatching, GaussianDiffusion, LevelSampling, SamplerConfig,
+                             classifier_free_guidance, context_inputs, ddim_step, diffusion_loss,
+                             make_betas, sample_window, scheduling_matrix, training_levels,
+                             window_denoiser)
 from wmjax.diffusion import schedules
 
 pytestmark = pytest.mark.unit
@@ -233,6 +234,34 @@ def test_training_regimes():
     training_levels(gauss, rng, 2, 6, "shared")
   with pytest.raises(ValueError, match="num_context"):
     training_levels(gauss, rng, 2, 6, "irasim", num_context=6)
+
+
+def test_level_sampling_shifts_training_towards_noise():
+  rng = jax.random.key(0)
+  gauss = GaussianDiffusion.create("sigmoid")
+  default = gauss.sample_levels(rng, (4096,))
+  np.testing.assert_array_equal(default, jax.random.randint(rng, (4096,), 0, 1000))  # unchanged
+  np.testing.assert_array_equal(gauss.sample_levels(rng, (4096,), LevelSampling("uniform")),
+                                default)
+  shifted = gauss.sample_levels(rng, (4096,), LevelSampling("logit_normal", loc=1.0))
+  assert shifted.dtype == jnp.int32 and (shifted >= 0).all() and (shifted <= 999).all()
+  assert 0.8 < float((shifted >= 500).mean()) < 0.88  # P(N(1, 1) > 0) = 0.84
+  assert abs(float(jnp.median(default)) - 500) < 30
+  centred = gauss.sample_levels(rng, (4096,), LevelSampling("logit_normal", loc=0.0, scale=0.5))
+  assert abs(float((centred >= 500).mean()) - 0.5) < 0.03
+  assert float(jnp.std(centred)) < float(jnp.std(default))
+  flow = FlowMatching()
+  np.testing.assert_allclose(flow.sample_levels(rng, (64,)),
+                             flow.sample_levels(rng, (64,), LevelSampling("logit_normal")))
+  assert float(jnp.mean(flow.sample_levels(rng, (4096,), LevelSampling("uniform")))) == \
+      pytest.approx(0.5, abs=0.02)
+  levels, mask = training_levels(gauss, rng, 512, 2, "irasim", 1,
+                                 LevelSampling("logit_normal", loc=2.0))
+  assert (levels[:, 0] == -1).all() and float(jnp.mean(levels[:, 1])) > 750
+  with pytest.raises(ValueError, match="level distribution must be one of"):
+    LevelSampling("lognormal")
+  with pytest.raises(ValueError, match="scale must be > 0"):
+    LevelSampling("logit_normal", scale=0.0)
 
 
 @pytest.mark.parametrize("regime,expect_zero", [("irasim", True), ("per_frame", False)])

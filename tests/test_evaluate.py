@@ -176,8 +176,10 @@ def workdir(tmp_path_factory):
       "data.gridworld.test_episodes": 3, "data.gridworld.episode_length": 14,
       "model.hidden_size": 32, "model.depth": 2, "model.num_heads": 2, "model.patch_size": 4,
       "batch_size": 8, "train.num_steps": 4, "train.log_every": 2, "train.checkpoint_every": 2,
-      "train.eval_every": 1000, "train.eval_windows": 2, "sampling.num_steps": 2,
-      "optim.warmup_steps": 1, "optim.total_steps": 4}
+      "train.eval_every": 0, "train.eval_windows": 2, "sampling.num_steps": 2,
+      "optim.warmup_steps": 1, "optim.total_steps": 4,
+      # 6-frame windows, 5 new frames a block (the default trains on 2-frame windows)
+      "data.frames": 6, "model.num_frames": 6, "rollout.horizon": 5, "rollout.short_actions": None}
   config = load_config(str(ROOT / "configs" / "gridworld.py"),
                        [f"{k}={v}" for k, v in overrides.items()])
   train(config, str(root / "run"))

@@ -40,7 +40,7 @@ def _values(data_dir, **extra):
       "data.data_dir": repr(str(data_dir)), "data.gridworld.train_episodes": 16,
       "data.gridworld.test_episodes": 2, "data.gridworld.episode_length": 12,
       "model.patch_size": 4, "batch_size": 8, "train.num_steps": 4, "train.log_every": 1,
-      "train.checkpoint_every": 2, "train.eval_every": 1000, "train.eval_windows": 2,
+      "train.checkpoint_every": 2, "train.eval_every": 0, "train.eval_windows": 2,
       "sampling.num_steps": 2, "optim.warmup_steps": 1, "optim.total_steps": 4}
   values.update(extra)
   return [f"{k}={v}" for k, v in values.items()]

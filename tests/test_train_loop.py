@@ -27,7 +27,7 @@ def _overrides(data_dir, **extra):
       "data.gridworld.test_episodes": 2, "data.gridworld.episode_length": 12,
       "model.hidden_size": 32, "model.depth": 2, "model.num_heads": 2, "model.patch_size": 4,
       "batch_size": 4, "train.num_steps": 8, "train.log_every": 1, "train.checkpoint_every": 2,
-      "train.eval_every": 1000, "train.eval_windows": 2, "sampling.num_steps": 2,
+      "train.eval_every": 0, "train.eval_windows": 2, "sampling.num_steps": 2,
       "optim.warmup_steps": 2, "optim.total_steps": 8,
   }
   values.update(extra)
@@ -90,6 +90,9 @@ def test_kill_and_resume_is_bit_identical(data_dir, tmp_path):
     np.testing.assert_array_equal(leaves_a[key], leaves_b[key], err_msg=key)
   assert _batches(straight) == _batches(interrupted)
   assert sorted(_batches(straight)) == list(range(1, 9))
+  # train.eval_every=0: no evaluation at all, not even at the end
+  assert json.loads((straight / "metrics.json").read_text()) == {"step": 8}
+  assert not (straight / "rollout.gif").exists() and not (straight / "samples").exists()
 
 
 def _flatten(tree):

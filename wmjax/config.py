@@ -134,6 +134,11 @@ class DiffusionConfig:
   # noised frame after a clean past)
   regime: str = "per_frame"
   num_context: int = 1  # context frames the loss leaves out
+  # how a noisy frame's training level is drawn (wmjax.diffusion.LevelSampling): 'default' (the
+  # process's own) | 'uniform' | 'logit_normal' (sigmoid(level_loc + level_scale * N(0, 1)))
+  level_distribution: str = "default"
+  level_loc: float = 0.0
+  level_scale: float = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -170,7 +175,7 @@ class TrainConfig:
   num_steps: int = 300_000
   log_every: int = 100
   checkpoint_every: int = 5_000
-  eval_every: int = 5_000
+  eval_every: int = 5_000  # 0: no evaluation, neither periodic nor at the end
   eval_windows: int = 16  # held-out windows evaluated every eval_every steps
   max_checkpoints: int = 3
   # fit before the first step: compiled memory against the device's limit (or the budget)

@@ -1,7 +1,7 @@
 """Noise schedules, forward processes and objectives, samplers and scheduling matrices."""
 
-from wmjax.diffusion.objectives import (FlowMatching, GaussianDiffusion, Process, diffusion_loss,
-                                        make_process, masked_loss_sum, Regression,
+from wmjax.diffusion.objectives import (FlowMatching, GaussianDiffusion, LevelSampling, Process,
+                                        diffusion_loss, make_process, masked_loss_sum, Regression,
                                         training_levels, training_noise)
 from wmjax.diffusion.sampling import (SamplerConfig, classifier_free_guidance, context_inputs,
                                       ddim_step, euler_step, sample_window, sampler_step,
@@ -9,7 +9,7 @@ from wmjax.diffusion.sampling import (SamplerConfig, classifier_free_guidance, c
 from wmjax.diffusion.schedules import alphas_cumprod, make_betas
 
 __all__ = [
-    "FlowMatching", "GaussianDiffusion", "Process", "SamplerConfig", "alphas_cumprod",
+    "FlowMatching", "GaussianDiffusion", "LevelSampling", "Process", "SamplerConfig", "alphas_cumprod",
     "classifier_free_guidance", "context_inputs", "ddim_step", "diffusion_loss", "euler_step",
     "make_betas", "make_process", "masked_loss_sum", "Regression", "sample_window", "sampler_step",
     "scheduling_matrix", "training_levels", "training_noise", "window_denoiser",

@@ -28,6 +28,39 @@ from wmjax.diffusion import schedules
 
 PREDICTIONS = ("eps", "v", "x0")
 NOISE_REGIMES = ("irasim", "per_frame", "monotone", "autoregressive")
+LEVEL_DISTRIBUTIONS = ("default", "uniform", "logit_normal")
+
+
+@dataclasses.dataclass(frozen=True)
+class LevelSampling:
+  """How training draws a frame's noise level, as a fraction ``u`` of the way from clean to
+  pure noise: ``'uniform'`` (DDPM), ``'logit_normal'`` (``u = sigmoid(loc + scale * N(0, 1))``,
+  SD3; ``loc > 0`` puts more of the training at high noise, where a frame has to come from its
+  past and its action) or ``'default'`` (the process's own: uniform for Gaussian diffusion,
+  logit-normal(0, 1) for flow matching)."""
+
+  distribution: str = "default"
+  loc: float = 0.0
+  scale: float = 1.0
+
+  def __post_init__(self):
+    if self.distribution not in LEVEL_DISTRIBUTIONS:
+      raise ValueError(f"level distribution must be one of {LEVEL_DISTRIBUTIONS}, got "
+                       f"{self.distribution!r}")
+    if self.scale <= 0:
+      raise ValueError(f"level scale must be > 0, got {self.scale}")
+
+  @classmethod
+  def from_config(cls, diffusion) -> "LevelSampling":
+    """From a ``config.diffusion`` section (:class:`wmjax.config.DiffusionConfig`)."""
+    return cls(diffusion.level_distribution, diffusion.level_loc, diffusion.level_scale)
+
+  def fractions(self, rng: jax.Array, shape: tuple[int, ...], default: str) -> jax.Array:
+    """Fractions in ``[0, 1]`` of ``shape``; ``default`` stands for ``'default'``."""
+    distribution = default if self.distribution == "default" else self.distribution
+    if distribution == "uniform":
+      return jax.random.uniform(rng, shape)
+    return jax.nn.sigmoid(self.loc + self.scale * jax.random.normal(rng, shape))
 
 
 def broadcast_per_frame(values: jax.Array, like: jax.Array) -> jax.Array:
@@ -103,9 +136,13 @@ class GaussianDiffusion:
     """A clean context frame as shown at ``level``: scaled by ``sqrt(abar)``, no noise added."""
     return jnp.sqrt(self.abar(jnp.asarray(int(level)))) * x0
 
-  def sample_levels(self, rng: jax.Array, shape: tuple[int, ...]) -> jax.Array:
-    """Training levels, uniform over ``[0, T-1]``."""
-    return jax.random.randint(rng, shape, 0, self.num_timesteps)
+  def sample_levels(self, rng: jax.Array, shape: tuple[int, ...],
+                    sampling: LevelSampling = LevelSampling()) -> jax.Array:
+    """Integer training levels in ``[0, T-1]``, uniform by default."""
+    if sampling.distribution in ("default", "uniform"):
+      return jax.random.randint(rng, shape, 0, self.num_timesteps)
+    u = sampling.fractions(rng, shape, default="uniform")
+    return jnp.minimum(jnp.floor(u * self.num_timesteps), self.num_timesteps - 1).astype(jnp.int32)
 
   def sampling_levels(self, num_steps: int) -> np.ndarray:
     """The ``num_steps + 1`` levels a sampler visits: ``round(linspace(-1, T-1, S+1))``; index 0 is clean."""
@@ -148,9 +185,9 @@ class FlowMatching:
   def context_input(self, x0, level):
     return (1.0 - float(level)) * x0
 
-  def sample_levels(self, rng, shape):
-    """Logit-normal training times ``t = sigmoid(N(0, 1))``."""
-    return jax.nn.sigmoid(jax.random.normal(rng, shape))
+  def sample_levels(self, rng, shape, sampling: LevelSampling = LevelSampling()):
+    """Training times ``t``, logit-normal ``sigmoid(N(0, 1))`` by default."""
+    return sampling.fractions(rng, shape, default="logit_normal")
 
   def sampling_levels(self, num_steps: int) -> np.ndarray:
     return np.linspace(0.0, 1.0, num_steps + 1, dtype=np.float32)
@@ -197,8 +234,8 @@ class Regression:
   def context_input(self, x0, level):
     return (1.0 - float(level)) * x0
 
-  def sample_levels(self, rng, shape):
-    del rng
+  def sample_levels(self, rng, shape, sampling: LevelSampling = LevelSampling()):
+    del rng, sampling
     return jnp.ones(shape, jnp.float32)
 
   def sampling_levels(self, num_steps: int) -> np.ndarray:
@@ -227,8 +264,10 @@ def make_process(kind: str = "gaussian", schedule: str = "linear", num_timesteps
 
 
 def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,
-                    regime: str = "per_frame", num_context: int = 1) -> tuple[jax.Array, jax.Array]:
-  """Noise levels ``[B, T]`` and the loss mask ``[B, T]`` of one training batch.
+                    regime: str = "per_frame", num_context: int = 1,
+                    sampling: LevelSampling = LevelSampling()) -> tuple[jax.Array, jax.Array]:
+  """Noise levels ``[B, T]`` and the loss mask ``[B, T]`` of one training batch; every level
+  the regime leaves noisy is drawn by ``sampling``.
 
   ``irasim``: the first ``num_context`` frames are clean and excluded from the loss; the predicted
   frames share one level per sample. ``per_frame`` (WPE, diffusion forcing): an independent level
@@ -244,7 +283,7 @@ def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,
   under causal attention they cannot reach frame ``k``.
   """
   if regime in ("per_frame", "monotone"):
-    levels = process.sample_levels(rng, (batch, frames))
+    levels = process.sample_levels(rng, (batch, frames), sampling)
     if regime == "monotone":
       levels = jnp.sort(levels, axis=1)
     return levels, jnp.ones((batch, frames), jnp.float32)
@@ -256,10 +295,10 @@ def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,
       frame_key, level_key = jax.random.split(rng)
       target = jax.random.randint(frame_key, (batch, 1), num_context, frames)
       steps = jnp.arange(frames)[None, :]
-      levels = process.sample_levels(level_key, (batch, frames))
+      levels = process.sample_levels(level_key, (batch, frames), sampling)
       levels = jnp.where(steps < target, jnp.asarray(process.clean_level, levels.dtype), levels)
       return levels, (steps == target).astype(jnp.float32)
-    shared = process.sample_levels(rng, (batch, 1))
+    shared = process.sample_levels(rng, (batch, 1), sampling)
     is_context = jnp.arange(frames)[None, :] < num_context
     levels = jnp.where(is_context, jnp.asarray(process.clean_level, shared.dtype), shared)
     return levels, jnp.broadcast_to(~is_context, (batch, frames)).astype(jnp.float32)
@@ -268,24 +307,27 @@ def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,
 
 def diffusion_loss(denoise_fn: Callable[[jax.Array, jax.Array], jax.Array], process: Process,
                    x0: jax.Array, rng: jax.Array, regime: str = "per_frame",
-                   num_context: int = 1) -> tuple[jax.Array, dict]:
+                   num_context: int = 1, sampling: LevelSampling = LevelSampling()
+                   ) -> tuple[jax.Array, dict]:
   """Unweighted MSE between the network output and the process's target on the loss frames.
 
   ``denoise_fn(x_t, levels)`` runs the network on the noisy video ``[B, T, H, W, C]`` at levels
   ``[B, T]``. Returns ``(loss, aux)`` with the per-frame loss ``[B, T]`` and the levels in ``aux``.
   """
-  levels, mask, noise = training_noise(process, rng, x0.shape, regime, num_context)
+  levels, mask, noise = training_noise(process, rng, x0.shape, regime, num_context, sampling)
   loss_sum, per_frame = masked_loss_sum(denoise_fn, process, x0, levels, noise, mask)
   return loss_sum / mask.sum(), {"per_frame_loss": per_frame, "levels": levels, "loss_mask": mask}
 
 
 def training_noise(process: Process, rng: jax.Array, shape: tuple[int, ...],
-                   regime: str = "per_frame", num_context: int = 1
+                   regime: str = "per_frame", num_context: int = 1,
+                   sampling: LevelSampling = LevelSampling()
                    ) -> tuple[jax.Array, jax.Array, jax.Array]:
   """The random part of one training batch of videos ``shape = [B, T, ...]``: levels ``[B, T]``,
   loss mask ``[B, T]`` (:func:`training_levels`) and Gaussian noise of ``shape``."""
   level_rng, noise_rng = jax.random.split(rng)
-  levels, mask = training_levels(process, level_rng, shape[0], shape[1], regime, num_context)
+  levels, mask = training_levels(process, level_rng, shape[0], shape[1], regime, num_context,
+                                 sampling)
   return levels, mask, jax.random.normal(noise_rng, shape, jnp.float32)
 
 

@@ -43,7 +43,7 @@ import numpy as np
 from wmjax import parallel
 from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.pipeline import training_pipeline
-from wmjax.diffusion import diffusion_loss
+from wmjax.diffusion import LevelSampling, diffusion_loss
 from wmjax.errors import CheckpointError, RunError
 from wmjax.eval.metrics import frame_metrics
 from wmjax.eval.video import comparison, stack_rows, write_video
@@ -70,12 +70,14 @@ class NonFiniteLossError(RunError):
 # ----------------------------------------------------------------------------- evaluation
 
 
-@functools.partial(jax.jit, static_argnums=(0, 5, 6))
+@functools.partial(jax.jit, static_argnums=(0, 5, 6, 7))
 def _validation_loss(world_model: WorldModel, params: Any, frames: jax.Array, actions: jax.Array,
-                     rng: jax.Array, regime: str, num_context: int) -> jax.Array:
+                     rng: jax.Array, regime: str, num_context: int,
+                     level_sampling: LevelSampling) -> jax.Array:
   def denoise(x, levels):
     return world_model.network.apply(params, x, world_model.process.model_time(levels), actions)
-  return diffusion_loss(denoise, world_model.process, frames, rng, regime, num_context)[0]
+  return diffusion_loss(denoise, world_model.process, frames, rng, regime, num_context,
+                        level_sampling)[0]
 
 
 def evaluate(world_model: WorldModel, params: Any, windows: dict[str, np.ndarray],
@@ -98,7 +100,8 @@ def evaluate(world_model: WorldModel, params: Any, windows: dict[str, np.ndarray
   predicted = np.asarray(codec.decode(rollout(world_model, params, frames[:, :c],
                                               actions[:, c - 1:], rollout_rng, horizon=h)))
   val_loss = _validation_loss(world_model, params, frames, actions, loss_rng,
-                              config.diffusion.regime, config.diffusion.num_context)
+                              config.diffusion.regime, config.diffusion.num_context,
+                              LevelSampling.from_config(config.diffusion))
   num_frames = windows["frames"].shape[1]
   extras = {k: v[:, c:] for k, v in windows.items()
             if k not in ("frames", "actions") and np.ndim(v) >= 2 and np.shape(v)[1] == num_frames}
@@ -237,7 +240,8 @@ def _resume(checkpoints: Checkpointer, trainer: ShardedTrainer, config: ml_colle
 
 def train(config: ml_collections.ConfigDict, workdir: str, *,
           allow_config_change: Sequence[str] = ()) -> tuple[Any, dict]:
-  """Train (or resume) in ``workdir``; returns the final train state and evaluation metrics.
+  """Train (or resume) in ``workdir``; returns the final train state and evaluation metrics
+  (only ``step`` with ``train.eval_every=0``).
 
   A resumed run must match the config of its checkpoint except for
   :data:`wmjax.train.resume.SAFE_ON_RESUME` and the keys (or sections) named in
@@ -299,7 +303,8 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
         batch_size=config.batch_size // jax.process_count(),
         seed=config.seed, normalization=config.data.normalization,
         action_dim=config.model.action_dim, num_workers=config.data.num_workers, start=start))
-    windows = eval_windows(data, config)
+    evaluating = train_cfg.eval_every > 0
+    windows = eval_windows(data, config) if evaluating else None
     task = frame_metrics_of(data.members[0].spec.name)
     if is_chief:
       with open(os.path.join(workdir, "config.json"), "w") as f:
@@ -367,7 +372,7 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
           log.flush()
       if step % train_cfg.checkpoint_every == 0:
         save(step)
-      if step % train_cfg.eval_every == 0 and step < num_steps:
+      if evaluating and step % train_cfg.eval_every == 0 and step < num_steps:
         result, truth, predicted = evaluate(world_model, state.ema_params, windows, config,
                                             jax.random.key(step), data.codec, data.latents, task)
         if is_chief:
@@ -395,11 +400,15 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
       save(step)
     checkpoints.wait()
     bar.close()
-    result, truth, predicted = evaluate(world_model, state.ema_params, windows, config,
-                                        jax.random.key(num_steps), data.codec, data.latents, task)
+    result = {}
+    if evaluating:
+      result, truth, predicted = evaluate(world_model, state.ema_params, windows, config,
+                                          jax.random.key(num_steps), data.codec, data.latents,
+                                          task)
+      if is_chief:
+        write_samples(os.path.join(workdir, "rollout.gif"), truth, predicted)
     result["step"] = step
     if is_chief:
-      write_samples(os.path.join(workdir, "rollout.gif"), truth, predicted)
       with open(os.path.join(workdir, "metrics.json"), "w") as f:
         json.dump(result, f, indent=2)
       for key, value in result.items():

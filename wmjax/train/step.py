@@ -19,7 +19,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from wmjax import parallel
-from wmjax.diffusion import masked_loss_sum, training_noise
+from wmjax.diffusion import LevelSampling, masked_loss_sum, training_noise
 from wmjax.model import WorldModel
 from wmjax.parallel import abstract_with_shardings
 from wmjax.train.state import (TrainState, create_train_state, ema_update, learning_rate_schedule,
@@ -38,13 +38,14 @@ def make_train_step(world_model: WorldModel, config: ml_collections.ConfigDict,
   net, process, diffusion = world_model.network, world_model.process, config.diffusion
   schedule = learning_rate_schedule(config.optim)
   micro = config.optim.grad_accum
+  level_sampling = LevelSampling.from_config(diffusion)
 
   def step(state: TrainState, frames: jax.Array, actions: jax.Array):
     key = jax.random.fold_in(jax.random.wrap_key_data(state.rng), state.step)
     noise_key, dropout_key = jax.random.split(key)
     b = frames.shape[0]
     levels, mask, noise = training_noise(process, noise_key, frames.shape, diffusion.regime,
-                                         diffusion.num_context)
+                                         diffusion.num_context, level_sampling)
     dropped = jax.random.bernoulli(dropout_key, net.action_dropout, (b,))
     normalizer = mask.sum()
 
