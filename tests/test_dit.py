@@ -176,10 +176,26 @@ def test_axial_rope_scores_depend_only_on_the_2d_offset():
     layers.rope(q[..., :6], grid)
 
 
-@pytest.mark.parametrize("cond", ["frame", "video", "per_frame"])
-def test_flop_counter_matches_xla(cond):
+def test_fourier_action_features_are_the_action_and_its_sines_and_cosines():
+  a = jnp.array([[0.25, -1.0]])
+  encoded = layers.fourier_encode(a, 2)  # [a0, a1, sin(pi a), sin(2 pi a), cos(pi a), cos(2 pi a)]
+  angles = np.pi * np.array([0.25, -1.0, 0.5, -2.0])
+  np.testing.assert_allclose(encoded[0], np.concatenate([[0.25, -1.0], np.sin(angles),
+                                                         np.cos(angles)]), atol=1e-6)
+  embedder = layers.ActionEmbedder(8, fourier_features=2)
+  params = embedder.init(jax.random.key(0), a)
+  assert nn.unbox(params)["params"]["proj"]["kernel"].shape == (2 * (1 + 2 * 2), 8)
+  with pytest.raises(ValueError, match="action_fourier_features must be >= 0, got -1"):
+    STDiT(depth=2, hidden_size=32, num_heads=2, action_fourier_features=-1).init(
+        jax.random.key(0), *_inputs(1, 2, 8, 8, 4, 7))
+
+
+@pytest.mark.parametrize("cond,fourier", [("frame", 0), ("video", 0), ("per_frame", 0),
+                                          ("per_frame", 3)])
+def test_flop_counter_matches_xla(cond, fourier):
   model = STDiT(in_channels=4, patch_size=2, depth=4, hidden_size=256, num_heads=4,
-                num_frames=8, action_dim=7, cond=cond, scan_layers=False)  # XLA counts a loop body once
+                num_frames=8, action_dim=7, cond=cond, action_fourier_features=fourier,
+                scan_layers=False)  # XLA counts a loop body once
   x, t, a = _inputs(2, 8, 16, 16, 4, 7)
   params = jax.jit(model.init)(jax.random.key(0), x, t, a)
   cost = jax.jit(model.apply).lower(params, x, t, a).compile().cost_analysis()

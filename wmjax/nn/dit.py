@@ -113,6 +113,7 @@ class STDiT(nn.Module):
   action_dim: int = 7
   cond: str = "frame"
   action_embed_ratio: int = 4  # 0: linear action embedding (WPE); r: MLP with hidden r*D (IRASim)
+  action_fourier_features: int = 0  # K > 0: sin / cos of 2^k pi a (k < K) beside each raw action
   action_encoding: str = "raw"  # a key of ACTION_ENCODINGS
   trajectory_in_temporal: bool = False
   action_dropout: float = 0.1
@@ -137,6 +138,8 @@ class STDiT(nn.Module):
     if self.action_encoding == "text" and self.cond not in ("frame", "per_frame"):
       raise ValueError(f"action_encoding='text' embeds one action per frame, so cond must be "
                        f"'frame' or 'per_frame', got {self.cond!r}")
+    if self.action_fourier_features < 0:
+      raise ValueError(f"action_fourier_features must be >= 0, got {self.action_fourier_features}")
     if self.remat not in REMAT_POLICIES:
       raise ValueError(f"remat must be one of {sorted(REMAT_POLICIES)}, got {self.remat!r}")
     if self.depth % 2:
@@ -151,9 +154,11 @@ class STDiT(nn.Module):
     if self.cond in ("frame", "per_frame"):
       self.action_embed = (
           text_actions.TextActionEmbedder(d, dtype=dtype) if self.action_encoding == "text" else
-          layers.ActionEmbedder(d, self.action_embed_ratio, dtype=dtype))
+          layers.ActionEmbedder(d, self.action_embed_ratio, self.action_fourier_features,
+                                dtype=dtype))
     if self.uses_trajectory:
-      self.trajectory_embed = layers.ActionEmbedder(d, self.action_embed_ratio, dtype=dtype)
+      self.trajectory_embed = layers.ActionEmbedder(d, self.action_embed_ratio,
+                                                    self.action_fourier_features, dtype=dtype)
     self.null_action = self.param("null_action", logical(nn.initializers.normal(0.02), "embed"),
                                   (d,))
     self.blocks = LayerStack(self.depth // 2, self.num_heads, self.mlp_ratio, self.causal_temporal,

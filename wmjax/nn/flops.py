@@ -16,6 +16,7 @@ def _matmul(m: int, k: int, n: int) -> int:
 
 def _embedder(model: STDiT, rows: int, in_features: int) -> int:
   d, r = model.hidden_size, model.action_embed_ratio
+  in_features *= 1 + 2 * model.action_fourier_features
   if r == 0:
     return _matmul(rows, in_features, d)
   return _matmul(rows, in_features, r * d) + _matmul(rows, r * d, d)

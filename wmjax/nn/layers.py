@@ -141,21 +141,36 @@ class ActionEmbedder(nn.Module):
   """Raw action vector -> conditioning vector ``[..., A] -> [..., D]``.
 
   ``hidden_ratio == 0`` is one linear map (WPE); otherwise an MLP
-  ``Linear(A, ratio*D) -> GELU-tanh -> Linear(ratio*D, D)`` (IRASim).
+  ``Linear(A, ratio*D) -> GELU-tanh -> Linear(ratio*D, D)`` (IRASim). With ``fourier_features
+  = K > 0`` each action number ``a`` first becomes ``[a, sin(2^k pi a), cos(2^k pi a)]`` for
+  ``k < K`` (NeRF's positional encoding, Tancik et al. 2020), ``[..., A] -> [..., A (1 + 2K)]``:
+  a linear map of those can change sharply with ``a``, as the next frame does where an action
+  crosses a rounding boundary of the pixel grid, which a linear map of ``a`` alone cannot.
   """
 
   hidden_size: int
   hidden_ratio: int = 0
+  fourier_features: int = 0
   dtype: Dtype = jnp.float32
 
   @nn.compact
   def __call__(self, actions: jax.Array) -> jax.Array:
+    if self.fourier_features:
+      actions = fourier_encode(actions, self.fourier_features)
     if self.hidden_ratio == 0:
       return nn.Dense(self.hidden_size, dtype=self.dtype,
                       kernel_init=logical(_xavier, "action", "embed"),
                       bias_init=logical(_zeros, "embed"), name="proj")(actions)
     return Mlp(self.hidden_size, self.hidden_ratio * self.hidden_size, in_axis="action",
                dtype=self.dtype, name="mlp")(actions)
+
+
+def fourier_encode(x: jax.Array, num_frequencies: int) -> jax.Array:
+  """``[..., F] -> [..., F (1 + 2K)]``: ``x``, then ``sin`` and ``cos`` of ``2^k pi x`` for
+  ``k < K`` (grouped by function, then frequency, then feature)."""
+  angles = (jnp.pi * 2.0 ** jnp.arange(num_frequencies, dtype=x.dtype))[:, None] * x[..., None, :]
+  angles = angles.reshape(*x.shape[:-1], num_frequencies * x.shape[-1])
+  return jnp.concatenate([x, jnp.sin(angles), jnp.cos(angles)], axis=-1)
 
 
 class PatchEmbed(nn.Module):
