@@ -13,8 +13,9 @@ levels are where the square has to come from the action. Each action number ente
 and cosines of 2^k pi a (k < 4) beside it (``action_fourier_features=4``): the move is
 ``round(v)`` pixels, a step function of the action that a linear embedding of ``a`` alone cannot
 draw sharply (half the error, experiments/gridworld/RESULTS.md). Rollouts chain 1-frame blocks, each in
-2 DDIM steps; the short protocol is 1 frame + 5 actions. 1500 steps of batch 16 take about
-9 minutes on the 2-core CPU VM.
+2 DDIM steps; the short protocol is 1 frame + 5 actions. 1200 steps of batch 16 take about
+7-8 minutes on the 2-core CPU VM (1500 steps: a little better, 0.25 / 0.33 px short over two
+seeds against 0.39 / 0.38, but past the quickstart's 10 minutes on a slow VM).
 """
 
 import dataclasses
@@ -49,9 +50,9 @@ def get_config() -> ml_collections.ConfigDict:
                                     context_level=0.0, clip_denoised=True, kv_cache=True)
   config.rollout = ml_collections.ConfigDict(dict(context=1, horizon=1, short_actions=5))
   config.optim = optim_config(learning_rate=3e-3, schedule="cosine", warmup_steps=100,
-                              total_steps=1500, b2=0.99, grad_clip=1.0, ema_decay=0.999)
+                              total_steps=1200, b2=0.99, grad_clip=1.0, ema_decay=0.999)
   config.train = ml_collections.ConfigDict(dict(
-      num_steps=1500, log_every=50, checkpoint_every=500, eval_every=1500, eval_windows=32,
+      num_steps=1200, log_every=50, checkpoint_every=400, eval_every=1200, eval_windows=32,
       max_checkpoints=3,
       # fit before the first step: compiled memory against the device's limit (or the budget)
       auto_fit=True, memory_budget_gib=None))
