@@ -56,6 +56,33 @@ def test_auto_fit_takes_micro_batches_under_a_budget_and_keeps_the_loss():
     fit.fit_step(config, fit.parse_target("cpu:2"), budget_bytes=1024, batch=2)
 
 
+REFUSAL = ("RESOURCE_EXHAUSTED: Ran out of memory on HBM, the total memory required for HLO "
+           "temporaries (123.37G) exceeds available HBM (95.74G).")
+
+
+@pytest.mark.integration
+def test_a_step_the_compiler_refuses_does_not_fit_and_the_ladder_climbs(monkeypatch):
+  """A TPU compiler refuses a program larger than the HBM (RESOURCE_EXHAUSTED) instead of
+  reporting its size: that setting does not fit, and the ladder goes on to the next one."""
+  original = fit.ShardedTrainer.compile
+
+  def compile_refusing_no_remat(trainer, *args):
+    if trainer.world_model.network.remat == "none":
+      raise jax.errors.JaxRuntimeError(REFUSAL)
+    return original(trainer, *args)
+
+  monkeypatch.setattr(fit.ShardedTrainer, "compile", compile_refusing_no_remat)
+  config = tiny_config("gridworld.py", *SMALL, "model.remat='none'")
+  lines = []
+  fitted, _, report = fit.fit_step(config, fit.parse_target("cpu:2"), budget_bytes=fit.GIB,
+                                   batch=2, log=lines.append)
+  assert fitted.model.remat == "dots" and report["fits"]
+  assert report["tried"][0] == {"remat": "none", "grad_accum": 1, "total_gib": 123.37}
+  assert "more than 123 GiB per device, refused by the compiler" in lines[0]
+  assert fit.refused_report(jax.errors.JaxRuntimeError("INTERNAL: boom"),
+                            fit.parse_target("cpu:2")) is None
+
+
 @pytest.mark.unit
 def test_targets_parse_and_refuse_clearly():
   assert len(fit.parse_target("cpu:2").devices) == 2

@@ -1,5 +1,7 @@
 """Model, objective and sampler fit together: a tiny model memorises one clip of a moving square."""
 
+import functools
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -13,6 +15,8 @@ from wmjax.model import WorldModel
 from wmjax.rollout import rollout
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+OPTIMISED = {"xla_backend_optimization_level": 2}  # XLA's default
 
 
 def moving_square_clip(frames=6, size=16, square=4, seed=0):
@@ -45,7 +49,9 @@ def test_tiny_model_overfits_a_moving_square():
     denoise = lambda x, levels: wm.network.apply(p, x, wm.process.model_time(levels), batch_actions)
     return diffusion_loss(denoise, wm.process, batch, rng, config.diffusion.regime)[0]
 
-  @jax.jit
+  # 300 steps run here: compiled with XLA's backend optimisations, which tests/conftest.py turns
+  # off for the suite's many programs that run once or twice.
+  @functools.partial(jax.jit, compiler_options=OPTIMISED)
   def train_step(p, opt_state, rng):
     loss, grads = jax.value_and_grad(loss_fn)(p, rng)
     updates, opt_state = optimizer.update(grads, opt_state, p)

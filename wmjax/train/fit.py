@@ -20,6 +20,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import os
+import re
 import time
 
 import jax
@@ -163,13 +164,37 @@ def memory_report(compiled: jax.stages.Compiled, target: Target,
   }
 
 
+_REFUSED_TEMP = re.compile(r"temporaries \(([\d.]+)([KMGT])i?B?\)")
+
+
+def refused_report(error: Exception, target: Target, budget_bytes: int | None = None
+                   ) -> dict | None:
+  """The report of a program the compiler refused for want of device memory (a TPU compiler
+  raises ``RESOURCE_EXHAUSTED`` rather than emit a program larger than the HBM): ``fits`` False,
+  ``temp_gib`` the temporaries the message names (None when it names none), the other sizes None
+  and ``refused`` the message's first line. None for any other error."""
+  message = str(error)
+  if not message.startswith("RESOURCE_EXHAUSTED"):
+    return None
+  found = _REFUSED_TEMP.search(message)
+  temp = (float(found.group(1)) * 1024 ** ("KMGT".index(found.group(2)) - 2)) if found else None
+  limit = budget_bytes if budget_bytes is not None else usable_memory(target)
+  return {
+      "arguments_gib": None, "outputs_gib": None, "temp_gib": temp, "total_gib": temp,
+      "device_memory_gib": None if target.memory_bytes is None else target.memory_bytes / GIB,
+      "limit_gib": None if limit is None else limit / GIB, "fits": False,
+      "xla_flops_per_device": None, "refused": message.splitlines()[0],
+  }
+
+
 def compile_step(config: ml_collections.ConfigDict, target: Target, batch: int | None = None,
                  budget_bytes: int | None = None
                  ) -> tuple[ShardedTrainer, jax.stages.Compiled, dict]:
   """The sharded train step of ``config`` compiled for ``target`` at global ``batch`` (default
   ``config.batch_size``) -> (trainer, compiled step, report): per-device memory (GiB) and whether
   it fits (:func:`memory_report`), the mesh, the attention path, XLA's and the analytic FLOPs and
-  the compile time. The trainer's :meth:`~ShardedTrainer.step` reuses the compiled step."""
+  the compile time. The trainer's :meth:`~ShardedTrainer.step` reuses the compiled step. A step
+  the compiler refuses for want of memory comes back as None with :func:`refused_report`."""
   world_model = WorldModel.from_config(config)
   net = world_model.network
   batch = batch or config.batch_size
@@ -183,13 +208,19 @@ def compile_step(config: ml_collections.ConfigDict, target: Target, batch: int |
                                          sharding=trainer.batch_sharding)
     actions_struct = jax.ShapeDtypeStruct((batch, frames - 1, net.action_dim), jnp.float32,
                                           sharding=trainer.batch_sharding)
-    compiled = trainer.compile(trainer.abstract_state, frames_struct, actions_struct)
+    try:
+      compiled = trainer.compile(trainer.abstract_state, frames_struct, actions_struct)
+      memory = memory_report(compiled, target, budget_bytes)
+    except jax.errors.JaxRuntimeError as e:
+      compiled, memory = None, refused_report(e, target, budget_bytes)
+      if memory is None:
+        raise
   report = {
       "what": "train", "target": target.spec, "platform": target.platform,
       "devices": len(target.devices), "mesh": dict(mesh.shape), "batch": batch, "frames": frames,
       "remat": net.remat, "grad_accum": trainer.micro_batches, "dtype": str(net.dtype),
       "attention": attention.resolve_backend(net.attention_impl, net.dtype, target.platform),
-      **memory_report(compiled, target, budget_bytes),
+      **memory,
       "analytic_flops": 3 * forward_flops(net, batch, frames, shape[0], shape[1]),
       "compile_s": time.perf_counter() - start,
   }
@@ -279,9 +310,16 @@ def describe(report: dict) -> str:
              if report["what"] == "train" else f"{report['model_calls']} model calls")
   verdict = ("" if report["fits"] is None else
              f" of {report['limit_gib']:.3g} -> {'fits' if report['fits'] else 'does not fit'}")
-  return (f"{report['what']} on {report['target']} (batch {report['batch']}, {setting}): "
-          f"{report['total_gib']:.3g} GiB per device (arguments {report['arguments_gib']:.3g} + "
-          f"temp {report['temp_gib']:.3g}){verdict}")
+  head = f"{report['what']} on {report['target']} (batch {report['batch']}, {setting}): "
+  if report.get("refused"):
+    return (f"{head}more than {_gib(report['temp_gib'])} GiB per device, refused by the "
+            f"compiler{verdict} ({report['refused']})")
+  return (f"{head}{report['total_gib']:.3g} GiB per device (arguments "
+          f"{report['arguments_gib']:.3g} + temp {report['temp_gib']:.3g}){verdict}")
+
+
+def _gib(value: float | None) -> str:
+  return "an unknown number of" if value is None else f"{value:.3g}"
 
 
 def fit_step(config: ml_collections.ConfigDict, target: Target, budget_bytes: int | None = None,
@@ -306,11 +344,11 @@ def fit_step(config: ml_collections.ConfigDict, target: Target, budget_bytes: in
     if report["fits"]:
       report["tried"] = tried
       return candidate, trainer, report
-  smallest = min(tried, key=lambda t: t["total_gib"])
+  smallest = min(tried, key=lambda t: float("inf") if t["total_gib"] is None else t["total_gib"])
   raise DoesNotFitError(
       f"no setting fits {limit / GIB:.3g} GiB per device on {target.spec}: the smallest tried, "
       f"remat={smallest['remat']} grad_accum={smallest['grad_accum']}, needs "
-      f"{smallest['total_gib']:.3g} GiB; use more devices (FSDP: the mesh's fsdp axis), a "
+      f"{_gib(smallest['total_gib'])} GiB; use more devices (FSDP: the mesh's fsdp axis), a "
       f"smaller batch or a smaller model")
 
 
@@ -346,7 +384,7 @@ def fit_for_training(config: ml_collections.ConfigDict, log=print
   log(f"auto_fit chose model.remat={report['remat']!r} optim.grad_accum={report['grad_accum']}: "
       f"{report['total_gib']:.3g} GiB per device of {report['limit_gib']:.3g} (the config's "
       f"remat={config.model.remat!r} grad_accum={config.optim.grad_accum} needs "
-      f"{first[2]['total_gib']:.3g})")
+      f"{_gib(first[2]['total_gib'])})")
   return fitted, trainer, report
 
 
