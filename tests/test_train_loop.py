@@ -14,7 +14,7 @@ import orbax.checkpoint as ocp
 import pytest
 
 from conftest import ROOT, tiny_config
-from wmjax.launch import launch_local
+from wmjax.launch import launch_local, process_env
 from wmjax.train.loop import NonFiniteLossError, train
 from wmjax.train.step import ShardedTrainer
 
@@ -35,10 +35,7 @@ def _overrides(data_dir, **extra):
 
 
 def _env(devices=2):
-  flags = [f for f in os.environ.get("XLA_FLAGS", "").split()
-           if not f.startswith("--xla_force_host_platform_device_count")]
-  env = dict(os.environ, XLA_FLAGS=" ".join(
-      flags + [f"--xla_force_host_platform_device_count={devices}"]))
+  env = process_env(0, "cpu", devices)  # the launcher's: the suite's XLA flags, `devices` devices
   env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
   return env
 

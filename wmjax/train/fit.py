@@ -150,17 +150,25 @@ def memory_report(compiled: jax.stages.Compiled, target: Target,
   args, out = analysis.argument_size_in_bytes, analysis.output_size_in_bytes
   temp, alias = analysis.temp_size_in_bytes, analysis.alias_size_in_bytes
   total = args + out - alias + temp
-  limit = budget_bytes if budget_bytes is not None else usable_memory(target)
   cost = compiled.cost_analysis()
   cost = cost[0] if isinstance(cost, (list, tuple)) and cost else cost
   xla_flops = float(cost.get("flops", 0.0)) if isinstance(cost, dict) else 0.0
   return {
       "arguments_gib": args / GIB, "outputs_gib": out / GIB, "temp_gib": temp / GIB,
-      "total_gib": total / GIB,
+      "total_gib": total / GIB, **_device_memory(target, budget_bytes, total),
+      "xla_flops_per_device": xla_flops or None,
+  }
+
+
+def _device_memory(target: Target, budget_bytes: int | None, total: int | None) -> dict:
+  """The device's memory, the limit (``budget_bytes``, default :func:`usable_memory`) in GiB and
+  whether ``total`` bytes fit it (None when no limit is known; False when ``total`` is None: the
+  compiler refused the program)."""
+  limit = budget_bytes if budget_bytes is not None else usable_memory(target)
+  return {
       "device_memory_gib": None if target.memory_bytes is None else target.memory_bytes / GIB,
       "limit_gib": None if limit is None else limit / GIB,
-      "fits": None if limit is None else total <= limit,
-      "xla_flops_per_device": xla_flops or None,
+      "fits": None if limit is None else total is not None and total <= limit,
   }
 
 
@@ -178,11 +186,9 @@ def refused_report(error: Exception, target: Target, budget_bytes: int | None = 
     return None
   found = _REFUSED_TEMP.search(message)
   temp = (float(found.group(1)) * 1024 ** ("KMGT".index(found.group(2)) - 2)) if found else None
-  limit = budget_bytes if budget_bytes is not None else usable_memory(target)
   return {
       "arguments_gib": None, "outputs_gib": None, "temp_gib": temp, "total_gib": temp,
-      "device_memory_gib": None if target.memory_bytes is None else target.memory_bytes / GIB,
-      "limit_gib": None if limit is None else limit / GIB, "fits": False,
+      **_device_memory(target, budget_bytes, None), "fits": False,
       "xla_flops_per_device": None, "refused": message.splitlines()[0],
   }
 
