@@ -14,7 +14,8 @@ import tempfile
 # level (test_overfit.py).
 os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                            + " --xla_force_host_platform_device_count=8"
-                           + " --xla_backend_optimization_level=0").strip()
+                           + " --xla_backend_optimization_level=0"
+                           + " --xla_cpu_use_fusion_emitters=false").strip()
 
 # One persistent compilation cache for the run, shared through the environment with the
 # processes it starts (`wmjax train` subprocesses, notebook kernels, pytest-xdist workers): the
