@@ -16,6 +16,7 @@ from wmjax.eval import rewards
 from wmjax.frames import to_model
 from wmjax.tasks.pusht import dataset as pusht_data
 from wmjax.tasks.pusht import simulator as pusht
+from wmjax.tasks.pusht.evaluate import summarize
 from wmjax.tasks.pusht.rewards import coverage
 from wmjax.train.loop import train
 
@@ -58,6 +59,17 @@ def test_the_pusher_beats_staying_and_noise_hurts():
   assert final["push"] > final["stay"] + 0.05 and final["push"] > final["push:0.5"] + 0.05
   with pytest.raises(ValueError, match="policy spec"):
     pusht.policy_from_spec("teleport", 4)
+
+
+@pytest.mark.unit
+def test_config_profiles():
+  cpu, h100 = (load_config(str(ROOT / "configs" / f"pusht.py:{p}")) for p in ("cpu", "h100"))
+  assert (cpu.model.depth, cpu.batch_size, cpu.model.dtype) == (6, 8, "float32")
+  assert (h100.model.depth, h100.model.hidden_size, h100.batch_size) == (12, 384, 64)
+  assert (h100.model.dtype, h100.data.pusht.train_episodes) == ("bfloat16", 1920)
+  assert load_config(str(ROOT / "configs" / "pusht.py")).to_dict() == cpu.to_dict()
+  with pytest.raises(ValueError, match="profile must be one of"):
+    load_config(str(ROOT / "configs" / "pusht.py:tpu"))
 
 
 @pytest.mark.integration
@@ -162,3 +174,17 @@ def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
   assert plan["candidates"]["3"]["world_model"]["replans"] == 2  # 6 steps, 4 executed per plan
   assert set(plan["candidates"]["1"]) == {"world_model", "simulator"}
   assert "| 3 |" in capsys.readouterr().out
+
+  summary = summarize(result, plan)
+  assert summary["ranking_matches"] in (True, False)
+  assert set(summary["planning"]) == set(summary["planning_lookahead"]) == {"1", "3"}
+  one, three = plan["candidates"]["1"]["world_model"], plan["candidates"]["3"]["world_model"]
+  gains = np.subtract(three["per_episode"], one["per_episode"])
+  assert summary["planning"]["3"]["gain_mean"] == pytest.approx(gains.mean())
+  assert summary["planning"]["3"]["mean"] == pytest.approx(three["final_coverage"]["mean"])
+  assert summary["planning"]["1"]["gain_mean"] == 0.0
+  json.dumps(summary, allow_nan=False)  # NaN correlations are None: strict JSON
+  with pytest.raises(ValueError, match="over K = 1"):
+    summarize(result, {**plan, "candidates": {"3": plan["candidates"]["3"]}})
+  with pytest.raises(ValueError, match="was not evaluated"):
+    summarize(result, plan, reward="vlm")

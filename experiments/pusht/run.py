@@ -1,106 +1,275 @@
 """Push-T: does a world model rank policies like the simulator, and does planning in it help?
 
-One script for the whole experiment (see RESULTS.md beside it for a measured run):
+One script for the whole experiment, in stages that each resume where an earlier run stopped
+(see RESULTS.md beside it for measured runs):
 
-1. simulate Push-T episodes with a scripted pusher at noise levels 0 / 0.1 / 0.2 / 0.5 and train
-   a world model on them (``wmjax train --config configs/pusht.py``; resumes if interrupted);
-2. train a success classifier (coverage >= --success_coverage) on the dataset's frames;
-3. evaluate five policies (the pusher at four noise levels and a do-nothing policy) in gym-pusht
-   and closed loop in the world model from the same initial states, with two rewards on the
-   imagined frames (coverage read from the frame, and the classifier), and print the agreement;
-4. plan by ranking K in {1, 5, 10, 50} candidate chunks from the noisy pusher, executed in
-   gym-pusht, and print the final coverage per K.
+1. ``data``: simulate Push-T episodes with a scripted pusher at noise levels 0 / 0.1 / 0.2 / 0.5
+   (``wmjax data prepare pusht``; host CPUs only);
+2. ``classifier``: a success classifier (coverage >= --success_coverage) on the dataset's frames
+   (host CPUs only);
+3. ``train``: the world model (``wmjax train --config configs/pusht.py:PROFILE``; resumes from
+   its last checkpoint);
+4. ``policy``: five policies (the pusher at four noise levels and a do-nothing policy) in
+   gym-pusht and closed loop in the world model from the same initial states, scored by the
+   coverage read from the imagined frames and by the classifier (``wmjax eval-policy``);
+5. ``plan``: model-predictive control ranking K candidate chunks from the noisy pusher, executed
+   in gym-pusht, one K at a time (``wmjax plan``);
+6. ``summary``: WORKDIR/summary.json (``pearson``, ``spearman``, ``ranking_matches``, and per K
+   the final coverage with its paired gain over K = 1) and the tables.
 
-    python experiments/pusht/run.py --workdir workdirs/pusht          # the measured run
-    python experiments/pusht/run.py --workdir /tmp/pusht --smoke      # minutes: plumbing only
+    python experiments/pusht/run.py --workdir workdirs/pusht                 # CPU, about 2 hours
+    python experiments/pusht/run.py --workdir /tmp/pusht --smoke             # plumbing, minutes
+    JAX_PLATFORMS=cpu python experiments/pusht/run.py --profile h100 \\
+        --workdir workdirs/pusht-h100 --stage data --stage classifier          # on the host
+    python experiments/pusht/run.py --profile h100 --workdir workdirs/pusht-h100 --minutes 9
 
-Outputs land in WORKDIR (model/, policy_eval/, plan/, classifier/, results.json).
+``--minutes M`` stops after about M minutes, for jobs with a time limit: training is asked to
+save and stop (as on SIGTERM), and no new stage or K starts after the deadline; the script then
+exits 3, and the same command continues. Finished stages are skipped: the dataset and the
+classifier are kept, training resumes from its checkpoint, ``policy_eval/policy_eval.json`` and
+each ``plan/K<k>/plan.json`` mark their work done.
+
+Outputs land in WORKDIR: data/, classifier/, model/, policy_eval/, plan/, summary.json and
+results.json (all raw results).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import signal
 import sys
+import threading
+import time
 
-from wmjax import cli
+STAGES = ("data", "classifier", "train", "policy", "plan", "summary")
+HOST_STAGES = {"data", "classifier", "summary"}  # never need an accelerator
+PROFILES = ("cpu", "h100")
+CONFIG = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "configs", "pusht.py")
+SMOKE = ["data.pusht.train_episodes=16", "data.pusht.test_episodes=4", "model.depth=2",
+         "model.hidden_size=32", "model.num_heads=2", "model.dtype='float32'",
+         "model.attention_impl='xla'", "batch_size=8", "train.num_steps=20",
+         "optim.total_steps=20", "optim.warmup_steps=5", "train.checkpoint_every=20",
+         "train.eval_every=20", "train.eval_windows=4", "data.num_workers=0"]
+UNFINISHED = 3  # exit code: stopped at the deadline, run the same command again
+
+
+class Deadline:
+  """``minutes`` from now (or never)."""
+
+  def __init__(self, minutes: float | None):
+    self.end = None if minutes is None else time.monotonic() + 60 * minutes
+
+  def passed(self) -> bool:
+    return self.end is not None and time.monotonic() >= self.end
+
+  @contextlib.contextmanager
+  def terminating(self):
+    """Within this block, ask this process to stop by SIGTERM once the deadline has come (the
+    training loop saves a checkpoint and stops), again every 10 s until the block ends: a
+    SIGTERM that comes before the loop listens (while it compiles) is ignored."""
+    done = threading.Event()
+
+    def send():
+      if self.end is not None and not done.wait(max(0.0, self.end - time.monotonic())):
+        while not done.is_set():
+          os.kill(os.getpid(), signal.SIGTERM)
+          done.wait(10.0)
+
+    previous = signal.signal(signal.SIGTERM, lambda *_: None)
+    thread = threading.Thread(target=send, daemon=True)
+    thread.start()
+    try:
+      yield
+    finally:
+      done.set()
+      thread.join()
+      signal.signal(signal.SIGTERM, previous)
 
 
 def main(argv=None) -> int:
-  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                   formatter_class=argparse.RawDescriptionHelpFormatter,
+                                   epilog="\n".join(__doc__.splitlines()[1:]))
   parser.add_argument("--workdir", required=True)
-  parser.add_argument("--data_dir", default=None, help="TFDS data directory (WORKDIR/data)")
+  parser.add_argument("--profile", choices=PROFILES, default="cpu",
+                      help="configs/pusht.py profile (default cpu)")
+  parser.add_argument("--stage", action="append", choices=STAGES,
+                      help="run only these stages, repeatable (default: all, in order)")
+  parser.add_argument("--minutes", type=float, default=None,
+                      help="stop after about this many minutes; rerun to continue")
   parser.add_argument("--episodes", type=int, default=48, help="episodes per policy")
   parser.add_argument("--steps", type=int, default=32, help="control steps per episode")
   parser.add_argument("--plan_episodes", type=int, default=20, help="seeds for planning")
   parser.add_argument("--plan_steps", type=int, default=24)
-  parser.add_argument("--candidates", default="1,5,10,50")
+  parser.add_argument("--candidates", default="1,5,10,50", help="K values, with 1")
   parser.add_argument("--plan_sampling_steps", type=int, default=4,
                       help="DDIM steps when imagining planning candidates")
+  parser.add_argument("--lookahead", action=argparse.BooleanOptionalAction, default=True,
+                      help="also plan with the simulator as the model (a reference that does "
+                           "not depend on the world model; default on)")
   parser.add_argument("--success_coverage", type=float, default=0.5,
                       help="classifier label: coverage >= this")
   parser.add_argument("--smoke", action="store_true",
                       help="tiny data, model and episodes: checks the plumbing in minutes")
   args = parser.parse_args(argv)
-  workdir = os.path.abspath(args.workdir)
-  data_dir = os.path.abspath(args.data_dir or os.path.join(workdir, "data"))
-  overrides = [f"--config.data.data_dir='{data_dir}'"]
-  episodes, steps, plan_episodes, plan_steps = (args.episodes, args.steps, args.plan_episodes,
-                                                args.plan_steps)
-  candidates = args.candidates
-  if args.smoke:
-    overrides += ["--config.data.pusht.train_episodes=16", "--config.data.pusht.test_episodes=4",
-                  "--config.model.depth=2", "--config.model.hidden_size=32",
-                  "--config.train.num_steps=20", "--config.optim.total_steps=20",
-                  "--config.optim.warmup_steps=5",
-                  "--config.train.checkpoint_every=20", "--config.train.eval_every=20",
-                  "--config.train.eval_windows=4"]
-    episodes, steps, plan_episodes, plan_steps, candidates = 4, 8, 2, 8, "1,3"
-  model_dir = os.path.join(workdir, "model")
+  stages = [s for s in STAGES if s in (args.stage or STAGES)]
+  if set(stages) <= HOST_STAGES:  # before JAX is imported: keep an accelerator free
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+  return Experiment(args).run(stages, Deadline(args.minutes))
 
-  def run(*command):
-    print("\n$ wmjax " + " ".join(command), flush=True)
-    code = cli.main(list(command))
+
+class Experiment:
+  """The stages of one Push-T run in one workdir."""
+
+  def __init__(self, args):
+    from wmjax.config import load_config
+
+    self.args = args
+    self.workdir = os.path.abspath(args.workdir)
+    self.config_file = f"{os.path.normpath(CONFIG)}:{args.profile}"
+    self.overrides = [f"data.data_dir={os.path.join(self.workdir, 'data')!r}"]
+    self.episodes, self.steps = args.episodes, args.steps
+    self.plan_episodes, self.plan_steps = args.plan_episodes, args.plan_steps
+    self.candidates = [int(k) for k in args.candidates.split(",")]
+    if args.smoke:
+      self.overrides += SMOKE
+      self.episodes, self.steps, self.plan_episodes, self.plan_steps = 4, 8, 2, 8
+      self.candidates = [1, 3]
+    if 1 not in self.candidates:
+      raise SystemExit(f"--candidates must include 1 (the baseline of the gains), got "
+                       f"{args.candidates}")
+    self.config = load_config(self.config_file, self.overrides)
+    self.model_dir = os.path.join(self.workdir, "model")
+    self.classifier_dir = os.path.join(self.workdir, "classifier")
+
+  def path(self, *parts: str) -> str:
+    return os.path.join(self.workdir, *parts)
+
+  def run(self, stages: list[str], deadline: Deadline) -> int:
+    for stage in stages:
+      if deadline.passed():
+        print(f"\nstopped at the deadline before stage {stage!r}; run the same command again to "
+              f"continue", flush=True)
+        return UNFINISHED
+      print(f"\n## stage {stage}", flush=True)
+      if getattr(self, stage)(deadline) is False:
+        print(f"\nstage {stage!r} stopped at the deadline; run the same command again to "
+              f"continue", flush=True)
+        return UNFINISHED
+    return 0
+
+  def wmjax(self, *command: str, overrides=()) -> int:
+    from wmjax import cli
+    print("\n$ wmjax " + " ".join(command + tuple(f"--config.{o}" for o in overrides)),
+          flush=True)
+    return cli.main(list(command) + [f"--config.{o}" for o in overrides])
+
+  def _check(self, code: int, command: str) -> None:
     if code:
-      raise SystemExit(f"wmjax {command[0]} failed with exit code {code}")
+      raise SystemExit(f"wmjax {command} failed with exit code {code}")
 
-  run("train", "--config", "configs/pusht.py", "--workdir", model_dir, *overrides)
-  classifier_dir = os.path.join(workdir, "classifier")
-  classifier_metrics = train_classifier(model_dir, classifier_dir, args.success_coverage,
-                                        smoke=args.smoke)
-  common = ["--workdir", model_dir, "--episodes", str(episodes), "--steps", str(steps)]
-  run("eval-policy", *common, "--reward", "coverage", "--reward",
-      f"classifier:{classifier_dir}", "--scan", "--out", os.path.join(workdir, "policy_eval"))
-  run("plan", "--workdir", model_dir, "--episodes", str(plan_episodes), "--steps",
-      str(plan_steps), "--candidates", candidates, "--lookahead", "--out",
-      os.path.join(workdir, "plan"),
-      f"--config.sampling.num_steps={args.plan_sampling_steps}")
+  # ------------------------------------------------------------------ stages
+  def data(self, deadline) -> None:
+    from wmjax.tasks.pusht.dataset import PushTConfig, prepare
+    print(prepare(self.config.data.data_dir, PushTConfig.from_dict(self.config.data.pusht)))
 
-  results = {"classifier": classifier_metrics}
-  for name, file in (("policy_eval", "policy_eval/policy_eval.json"), ("plan", "plan/plan.json")):
-    with open(os.path.join(workdir, file)) as f:
-      results[name] = json.load(f)
-  with open(os.path.join(workdir, "results.json"), "w") as f:
-    json.dump(results, f, indent=2)
-  with open(os.path.join(workdir, "policy_eval", "policy_eval.md")) as f:
-    print("\n# Policy evaluation\n\n" + f.read())
-  print(f"classifier: {json.dumps(classifier_metrics)}")
-  print("\n## Planning (final simulator coverage)\n")
-  print(results["plan"]["table"])
-  return 0
+  def classifier(self, deadline) -> None:
+    metrics_file = os.path.join(self.classifier_dir, "metrics.json")
+    if os.path.exists(metrics_file):
+      print(f"done before: {metrics_file}")
+      return
+    metrics = train_classifier(self.config, self.classifier_dir, self.args.success_coverage,
+                               steps=50 if self.args.smoke else 1500)
+    with open(metrics_file, "w") as f:
+      json.dump(metrics, f, indent=2)
+
+  def train(self, deadline) -> bool:
+    if self._trained_steps() == self.config.train.num_steps:
+      print(f"done before: {self.model_dir} holds step {self.config.train.num_steps}")
+      return True
+    with deadline.terminating():
+      code = self.wmjax("train", "--config", self.config_file, "--workdir", self.model_dir,
+                        overrides=self.overrides)
+    if code in (128 + signal.SIGTERM, 128 + signal.SIGINT) and deadline.passed():
+      return False
+    self._check(code, "train")
+    return True
+
+  def policy(self, deadline) -> None:
+    out = self.path("policy_eval")
+    if os.path.exists(os.path.join(out, "policy_eval.json")):
+      print(f"done before: {out}/policy_eval.json")
+      return
+    self._check(self.wmjax(
+        "eval-policy", "--workdir", self.model_dir, "--episodes", str(self.episodes), "--steps",
+        str(self.steps), "--reward", "coverage", "--reward", f"classifier:{self.classifier_dir}",
+        "--scan", "--out", out), "eval-policy")
+
+  def plan(self, deadline) -> bool:
+    from wmjax.tasks.pusht.evaluate import planning_table
+    rows, first = {}, None
+    for k in self.candidates:
+      out = self.path("plan", f"K{k}")
+      if not os.path.exists(os.path.join(out, "plan.json")):
+        if deadline.passed():
+          return False
+        self._check(self.wmjax(
+            "plan", "--workdir", self.model_dir, "--episodes", str(self.plan_episodes),
+            "--steps", str(self.plan_steps), "--candidates", str(k), "--out", out,
+            *(["--lookahead"] if self.args.lookahead else []),
+            overrides=[f"sampling.num_steps={self.args.plan_sampling_steps}"]), "plan")
+      with open(os.path.join(out, "plan.json")) as f:
+        result = json.load(f)
+      rows.update(result["candidates"])
+      first = first or result
+    merged = {**first, "candidates": rows, "table": planning_table(rows)}
+    with open(self.path("plan", "plan.json"), "w") as f:
+      json.dump(merged, f, indent=2)
+    with open(self.path("plan", "plan.md"), "w") as f:
+      f.write(merged["table"] + "\n")
+    return True
+
+  def summary(self, deadline) -> None:
+    from wmjax.tasks.pusht.evaluate import summarize
+    results = {}
+    for name, file in (("classifier", "classifier/metrics.json"),
+                       ("policy_eval", "policy_eval/policy_eval.json"),
+                       ("plan", "plan/plan.json")):
+      with open(self.path(file)) as f:
+        results[name] = json.load(f)
+    summary = {"profile": self.args.profile, "config": self.config.name,
+               "train_steps": self._trained_steps(),
+               **summarize(results["policy_eval"], results["plan"], "coverage")}
+    with open(self.path("results.json"), "w") as f:
+      json.dump(results, f, indent=2)
+    with open(self.path("summary.json"), "w") as f:
+      json.dump(summary, f, indent=2)
+    with open(self.path("policy_eval", "policy_eval.md")) as f:
+      print("\n# Policy evaluation\n\n" + f.read())
+    print(f"classifier: {json.dumps(results['classifier'])}")
+    print("\n## Planning (final simulator coverage)\n")
+    print(results["plan"]["table"])
+    print(f"\nwrote {self.path('summary.json')}:\n{json.dumps(summary, indent=2)}")
+
+  def _trained_steps(self) -> int | None:
+    """The newest complete checkpoint's step (unfinished saves carry a suffix)."""
+    directory = os.path.join(self.model_dir, "checkpoints")
+    steps = [int(d) for d in os.listdir(directory) if d.isdigit()] if os.path.isdir(
+        directory) else []
+    return max(steps, default=None)
 
 
-def train_classifier(model_dir: str, out: str, success_coverage: float, *, smoke: bool) -> dict:
-  """Fit the success classifier on the world model's training split; test accuracy on the
-  held-out split."""
+def train_classifier(config, out: str, success_coverage: float, *, steps: int) -> dict:
+  """Fit the success classifier on the training split of ``config``'s dataset; test accuracy on
+  the held-out split."""
   import numpy as np
 
   from wmjax.data.sources import dataset_dir
   from wmjax.eval import rewards
-  from wmjax.model import load_model
 
-  config = load_model(model_dir).config
   builder_dir = dataset_dir(config.data)
   label = f"coverage >= {success_coverage}"
   frames, labels = rewards.labelled_frames(builder_dir, "train", "coverage", success_coverage,
@@ -108,7 +277,7 @@ def train_classifier(model_dir: str, out: str, success_coverage: float, *, smoke
   test_frames, test_labels = rewards.labelled_frames(builder_dir, "test", "coverage",
                                                      success_coverage)
   classifier, train_metrics = rewards.train_success_classifier(
-      frames, labels, steps=50 if smoke else 1500, batch_size=64, label=label)
+      frames, labels, steps=steps, batch_size=64, label=label)
   classifier.save(out)
   predicted = classifier.probabilities(test_frames) > 0.5
   metrics = {"label": label, "train_frames": int(len(frames)),

@@ -5,6 +5,8 @@
   (estimate: a reward function on the imagined frames); values, agreement table, videos.
 * :func:`plan_in_simulator` — model-predictive control by ranking (:mod:`wmjax.eval.planning`)
   executed in the simulator for several candidate counts ``K``; final coverage per ``K``.
+* :func:`summarize` — the headline figures of both: correlations, whether the ranking matches,
+  and per ``K`` the final coverage and its paired gain over ``K = 1``.
 
 Both start each episode from :func:`.simulator.random_initial_states` (the training data's
 distribution) with ``context - 1`` still steps, so the world model gets the same first ``context``
@@ -227,6 +229,56 @@ def planning_table(rows: dict[int, dict]) -> str:
              f"{row[kind]['final_coverage']['stderr']:.3f}" for kind in kinds]
     lines.append(f"| {k} | " + " | ".join(cells) + " |")
   return "\n".join(lines)
+
+
+def summarize(policy_result: dict, plan_result: dict, reward: str = "coverage") -> dict[str, Any]:
+  """The headline figures of a policy evaluation (:func:`evaluate_policies`) and a planning run
+  (:func:`plan_in_simulator`, or several merged, with ``K = 1`` among them).
+
+  ``pearson`` / ``spearman`` / ``kendall`` and ``ranking_matches``: the world model's values
+  (``reward`` on the imagined frames) against the simulator's true final coverage over the
+  policies (NaN correlations become None). ``planning`` (and ``planning_lookahead`` when the
+  simulator planned too), keyed by K as a string: final coverage ``mean`` / ``stderr`` over the
+  episodes and the paired ``gain_mean`` / ``gain_stderr`` over K = 1 from the same initial states,
+  with the episodes it made ``better`` and ``worse``."""
+  if reward not in policy_result["rewards"]:
+    raise ValueError(f"reward {reward!r} was not evaluated; the policy evaluation has "
+                     f"{sorted(policy_result['rewards'])}")
+  agreement = policy_result["rewards"][reward]["agreement"]
+  rows = {str(k): row for k, row in plan_result["candidates"].items()}
+  if "1" not in rows:
+    raise ValueError(f"planning gains are measured over K = 1, which was not run (K in "
+                     f"{sorted(rows, key=int)})")
+
+  def finite(x):
+    return None if x is None or not np.isfinite(x) else float(x)
+
+  def gains(kind):
+    base = np.asarray(rows["1"][kind]["per_episode"])
+    table = {}
+    for k in sorted(rows, key=int):
+      final = np.asarray(rows[k][kind]["per_episode"])
+      if final.shape != base.shape:
+        raise ValueError(f"K = {k} ran {final.size} episodes and K = 1 {base.size}: the gains "
+                         f"pair episodes from the same initial states")
+      value, gain = policy_eval.policy_value(final), policy_eval.policy_value(final - base)
+      table[k] = {"mean": value.mean, "stderr": value.stderr, "gain_mean": gain.mean,
+                  "gain_stderr": gain.stderr, "better": int((final > base).sum()),
+                  "worse": int((final < base).sum())}
+    return table
+
+  summary = {
+      "reward": reward, "pearson": finite(agreement["pearson"]),
+      "spearman": finite(agreement["spearman"]), "kendall": finite(agreement["kendall"]),
+      "ranking_matches": agreement["ranking_preserved"] == 1.0,
+      "policies": {name: {"simulator": values["simulator"]["mean"],
+                          "world_model": values[reward]["world_model"]["mean"]}
+                   for name, values in policy_result["policies"].items()},
+      "episodes": {"policy_eval": policy_result["episodes"], "plan": plan_result["episodes"]},
+      "planning": gains("world_model")}
+  if all("simulator" in row for row in rows.values()):
+    summary["planning_lookahead"] = gains("simulator")
+  return summary
 
 
 def _write(out: str, name: str, result: dict, report: str) -> None:
