@@ -5,6 +5,7 @@ import csv
 import json
 import os
 import shutil
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -56,6 +57,16 @@ def test_mp4_and_gif_round_trip_and_panels():
     video.write_video("/tmp/x.avi", panels)
   with pytest.raises(ValueError, match="same frames and height"):
     video.side_by_side(truth, truth[:3])
+
+
+@pytest.mark.unit
+def test_gif_needs_no_ffmpeg_and_mp4_says_what_it_needs(tmp_path, monkeypatch):
+  monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # as where it is not installed
+  frames = np.zeros((3, 8, 8, 3), np.uint8)
+  frames[np.arange(3), np.arange(3)] = 255  # distinct frames (Pillow merges repeated ones)
+  assert video.read_video(video.write_video(str(tmp_path / "a.gif"), frames)).shape[0] == 3
+  with pytest.raises(ImportError, match="pip install imageio-ffmpeg.*GIF"):
+    video.write_video(str(tmp_path / "a.mp4"), frames)
 
 
 # ----------------------------------------------------------------------------- user inputs

@@ -152,7 +152,7 @@ def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
   assert cli.main(["eval-policy", "--workdir", workdir, "--episodes", "2", "--steps", "5",
                    "--policy", "push", "--policy", "push:0.5", "--policy", "stay",
                    "--reward", "coverage", "--reward", f"goal:{goal}",
-                   "--videos", "1", "--out", str(out), "--scan"]) == 0
+                   "--videos", "1", "--video_format", "gif", "--out", str(out), "--scan"]) == 0
   result = json.loads((out / "policy_eval.json").read_text())
   assert list(result["policies"]) == ["push", "push@0.5", "stay"]
   for values in result["policies"].values():
@@ -162,7 +162,7 @@ def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
     assert values[f"goal:{goal}"]["simulator_reward"]["mean"] <= 0.0  # -MSE
   pearson = result["rewards"]["coverage"]["agreement"]["pearson"]
   assert pearson is None or np.isnan(pearson) or -1.0 <= pearson <= 1.0
-  assert (out / "videos" / "push@0.5.mp4").stat().st_size > 0
+  assert (out / "videos" / "push@0.5.gif").stat().st_size > 0
   report = (out / "policy_eval.md").read_text()
   assert "## Reward: coverage" in report and "| push |" in report
 

@@ -110,6 +110,8 @@ def main(argv=None) -> int:
   parser.add_argument("--lookahead", action=argparse.BooleanOptionalAction, default=True,
                       help="also plan with the simulator as the model (a reference that does "
                            "not depend on the world model; default on)")
+  parser.add_argument("--video_format", choices=("mp4", "gif"), default="mp4",
+                      help="closed-loop videos: mp4 (needs imageio-ffmpeg) or gif")
   parser.add_argument("--success_coverage", type=float, default=0.5,
                       help="classifier label: coverage >= this")
   parser.add_argument("--smoke", action="store_true",
@@ -206,7 +208,7 @@ class Experiment:
     self._check(self.wmjax(
         "eval-policy", "--workdir", self.model_dir, "--episodes", str(self.episodes), "--steps",
         str(self.steps), "--reward", "coverage", "--reward", f"classifier:{self.classifier_dir}",
-        "--scan", "--out", out), "eval-policy")
+        "--scan", "--video_format", self.args.video_format, "--out", out), "eval-policy")
 
   def plan(self, deadline) -> bool:
     from wmjax.tasks.pusht.evaluate import planning_table

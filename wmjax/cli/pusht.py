@@ -29,7 +29,8 @@ def eval_policy(args, extra) -> int:
   rewards = {spec: reward_from_spec(spec) for spec in args.reward or ["coverage"]}
   out = args.out or f"{args.workdir}/policy_eval"
   result = evaluate_policies(model, policies, rewards, episodes=args.episodes, steps=args.steps,
-                             seed=args.seed, scan=args.scan, out=out, videos=args.videos)
+                             seed=args.seed, scan=args.scan, out=out, videos=args.videos,
+                             video_format=args.video_format)
   print(policy_report(result))
   print(f"wrote {out}/policy_eval.json, policy_eval.md and videos/")
   return 0
@@ -81,6 +82,8 @@ def add_parser(sub) -> None:
   policy.add_argument("--scan", action="store_true",
                       help="roll out inside one jitted scan (pure-JAX policies)")
   policy.add_argument("--videos", type=int, default=4, help="episodes per policy video")
+  policy.add_argument("--video_format", choices=("mp4", "gif"), default="mp4",
+                      help="mp4 (needs imageio-ffmpeg) or gif (default mp4)")
   common.register(policy, eval_policy, takes_overrides=True)
 
   planner = sub.add_parser("plan", help="Push-T: model-predictive control by ranking, run in the "

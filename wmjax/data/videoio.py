@@ -1,13 +1,23 @@
 """Reading video files into frames (mp4 through the ffmpeg binary imageio-ffmpeg ships, GIF
-through Pillow); the data layer's importers and the evaluation tools share it."""
+through Pillow); the data layer's importers and the evaluation tools share it. imageio-ffmpeg is
+imported only for mp4, so GIFs work where it is not installed."""
 
 from __future__ import annotations
 
 import warnings
 
-import imageio_ffmpeg
 import numpy as np
 from PIL import Image
+
+
+def ffmpeg():
+  """The ``imageio_ffmpeg`` module, or an error that says what needs it and what works without."""
+  try:
+    import imageio_ffmpeg
+  except ImportError as error:
+    raise ImportError("mp4 videos need imageio-ffmpeg (pip install imageio-ffmpeg), which is not "
+                      "installed here; GIF (.gif) works without it") from error
+  return imageio_ffmpeg
 
 
 def read_video(path: str) -> np.ndarray:
@@ -19,7 +29,7 @@ def read_video(path: str) -> np.ndarray:
         image.seek(index)
         frames.append(np.asarray(image.convert("RGB")))
     return np.stack(frames)
-  reader = imageio_ffmpeg.read_frames(path)
+  reader = ffmpeg().read_frames(path)
   with warnings.catch_warnings():
     warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
     meta = next(reader)

@@ -1,5 +1,5 @@
 """Video files: ground truth | prediction | difference panels as mp4 (H.264, through the ffmpeg
-binary that imageio-ffmpeg ships) or GIF (Pillow), and frame grids as PNG.
+binary that imageio-ffmpeg ships; imported only for mp4) or GIF (Pillow), and frame grids as PNG.
 
 Videos are ``[T, H, W, 3]``, uint8 or floats in [-1, 1].
 """
@@ -9,10 +9,10 @@ from __future__ import annotations
 import os
 import warnings
 
-import imageio_ffmpeg
 import numpy as np
 from PIL import Image
 
+from wmjax.data.videoio import ffmpeg
 from wmjax.data.videoio import read_video  # noqa: F401 (part of this module's interface)
 from wmjax.frames import to_uint8
 
@@ -77,9 +77,9 @@ def write_video(path: str, video, fps: float = 4.0, scale: int | None = None) ->
     return path
   pad_h, pad_w = video.shape[1] % 2, video.shape[2] % 2  # yuv420p needs even sizes
   video = np.pad(video, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)))
-  writer = imageio_ffmpeg.write_frames(path, (video.shape[2], video.shape[1]), fps=fps,
-                                       codec="libx264", quality=8, macro_block_size=1,
-                                       output_params=["-loglevel", "error"])
+  writer = ffmpeg().write_frames(path, (video.shape[2], video.shape[1]), fps=fps,
+                                 codec="libx264", quality=8, macro_block_size=1,
+                                 output_params=["-loglevel", "error"])
   with warnings.catch_warnings():  # JAX warns on any fork; ffmpeg is a fork + exec
     warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
     writer.send(None)

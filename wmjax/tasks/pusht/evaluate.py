@@ -64,11 +64,12 @@ def proposal_from_spec(spec: str, length: int) -> planning.Proposal:
 
 def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
                       rewards: dict[str, RewardFn], *, episodes: int, steps: int, seed: int = 0,
-                      scan: bool = False, out: str | None = None, videos: int = 4
-                      ) -> dict[str, Any]:
+                      scan: bool = False, out: str | None = None, videos: int = 4,
+                      video_format: str = "mp4") -> dict[str, Any]:
   """Values of ``policies`` in the simulator and in the world model ``model`` (a
   :class:`wmjax.model.LoadedModel`), and their agreement, for every reward function
-  in ``rewards`` (all scored on the same rollouts).
+  in ``rewards`` (all scored on the same rollouts). With ``out``, ``videos`` episodes per policy
+  are written to ``out/videos/POLICY.VIDEO_FORMAT`` (``mp4`` or ``gif``).
 
   Per policy: ``simulator`` (true final coverage) and, per reward, ``simulator_reward`` (the
   reward on the simulator's frames: what a perfect world model would score) and ``world_model``
@@ -76,6 +77,8 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
   ``agreement`` compares the world model's values with the simulator's and
   ``agreement_same_reward`` with ``simulator_reward``. ``scan``: roll out inside one jitted scan
   (pure-JAX policies only)."""
+  if video_format not in ("mp4", "gif"):
+    raise ValueError(f"video_format must be 'mp4' or 'gif', got {video_format!r}")
   if len(policies) < 3 or not rewards:
     raise ValueError(f"need at least 3 policies and a reward, got {len(policies)} policies and "
                      f"{len(rewards)} rewards")
@@ -110,7 +113,7 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
               imagined, reward_fn, INSTRUCTION, start=c - 1))}
     if out and videos:
       rows = [comparison(truth["frames"][i], imagined[i]) for i in range(min(videos, episodes))]
-      videos_written[name] = write_video(os.path.join(out, "videos", f"{name}.mp4"),
+      videos_written[name] = write_video(os.path.join(out, "videos", f"{name}.{video_format}"),
                                          stack_rows(rows))
 
   simulator = [values[n]["simulator"] for n in names]
