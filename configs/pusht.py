@@ -10,7 +10,7 @@ Profiles (``configs/pusht.py:PROFILE``):
 
 - ``cpu`` (default): 1.9M parameters (depth 6, width 128), 640 training episodes, 3000 steps of
   batch 8 in float32: about an hour on 2 CPU cores.
-- ``h100``: 34M parameters (depth 12, width 384, 6 heads) in bfloat16 with the fastest attention
+- ``h100``: 32.5M parameters (depth 12, width 384, 6 heads) in bfloat16 with the fastest attention
   the GPU has, 1920 training episodes, 5000 steps of batch 64 at learning rate 8e-4: about 7
   minutes and 22 GB on one H100 (11.6 steps/s), checkpointed every 500 steps so that a run cut
   by a 10-minute job limit resumes.
