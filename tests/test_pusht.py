@@ -1,7 +1,10 @@
 """Push-T: frame geometry against the simulator, the scripted pusher, the dataset, the reward
 functions, and `wmjax eval-policy` / `wmjax plan` end to end on a tiny model."""
 
+import importlib.util
 import json
+import os
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -18,7 +21,6 @@ from wmjax.tasks.pusht import dataset as pusht_data
 from wmjax.tasks.pusht import simulator as pusht
 from wmjax.tasks.pusht.evaluate import summarize
 from wmjax.tasks.pusht.rewards import coverage
-from wmjax.train.loop import train
 
 
 def _render(states, size=48):
@@ -125,22 +127,38 @@ def test_success_classifier_learns_and_round_trips(tmp_path):
     rewards.train_success_classifier(frames, np.zeros(48, bool))
 
 
+def _experiment_script():
+  spec = importlib.util.spec_from_file_location("pusht_run", ROOT / "experiments/pusht/run.py")
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  return module
+
+
+# experiments/pusht/run.py --smoke shrunk further: 16x16 frames, 8 + 4 short episodes, 2 steps
+EXPERIMENT_TINY = [
+    "--smoke", "--video_format", "gif", "--success_coverage", "0.1",
+    "--config.data.pusht.image_size=16", "--config.frame_shape=(16,16,3)",
+    "--config.data.pusht.episode_length=10", "--config.data.pusht.train_episodes=8",
+    "--config.data.pusht.test_episodes=4", "--config.data.pusht.batch=8",
+    "--config.train.num_steps=2", "--config.optim.total_steps=2", "--config.optim.warmup_steps=1",
+    "--config.train.checkpoint_every=2", "--config.train.eval_every=0",
+    "--config.sampling.num_steps=2"]
+
+
 @pytest.fixture(scope="module")
-def workdir(tmp_path_factory):
+def experiment(tmp_path_factory):
+  """(run.py's main, its arguments): the data, success classifier and a tiny world model made by
+  the experiment script's first stages."""
+  run = _experiment_script().main
+  args = ["--workdir", str(tmp_path_factory.mktemp("pusht"))] + EXPERIMENT_TINY
+  assert run(args + ["--stage", "data", "--stage", "classifier", "--stage", "train"]) == 0
+  return run, args
+
+
+@pytest.fixture(scope="module")
+def workdir(experiment):
   """A tiny Push-T model trained for a few steps on a few simulated episodes."""
-  root = tmp_path_factory.mktemp("pusht")
-  overrides = {
-      "data.data_dir": repr(str(root / "data")), "data.pusht.train_episodes": 6,
-      "data.pusht.test_episodes": 2, "data.pusht.episode_length": 10, "data.pusht.batch": 6,
-      "data.pusht.image_size": 16, "frame_shape": (16, 16, 3),
-      "model.hidden_size": 32, "model.depth": 2, "model.num_heads": 2,
-      "batch_size": 8, "train.num_steps": 2, "train.log_every": 1, "train.checkpoint_every": 2,
-      "train.eval_every": 0, "train.eval_windows": 2, "sampling.num_steps": 2,
-      "optim.warmup_steps": 1, "optim.total_steps": 2}
-  config = load_config(str(ROOT / "configs" / "pusht.py"),
-                       [f"{k}={v}" for k, v in overrides.items()])
-  train(config, str(root / "run"))
-  return str(root / "run")
+  return os.path.join(experiment[1][1], "model")
 
 
 @pytest.mark.slow
@@ -188,3 +206,28 @@ def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
     summarize(result, {**plan, "candidates": {"3": plan["candidates"]["3"]}})
   with pytest.raises(ValueError, match="was not evaluated"):
     summarize(result, plan, reward="vlm")
+
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_experiment_script_runs_its_stages_resumably(experiment):
+  run, args = experiment
+  root = Path(args[1])
+  assert run(args + ["--minutes", "0"]) == 3  # the deadline has passed: nothing starts
+  assert not (root / "policy_eval").exists()
+  assert run(args) == 0  # data, classifier and model done before: skipped
+  summary = json.loads((root / "summary.json").read_text())
+  assert (summary["profile"], summary["train_steps"]) == ("cpu", 2)
+  assert set(summary["planning"]) == set(summary["planning_lookahead"]) == {"1", "3"}
+  assert set(summary["policies"]) == {"push", "push@0.1", "push@0.2", "push@0.5", "stay"}
+  plan = json.loads((root / "plan" / "plan.json").read_text())  # the K runs merged
+  for k in ("1", "3"):
+    assert plan["candidates"][k] == json.loads(
+        (root / "plan" / f"K{k}" / "plan.json").read_text())["candidates"][k]
+  assert (root / "policy_eval" / "videos" / "stay.gif").exists()
+  (root / "summary.json").unlink()  # every stage is found done; the summary is the same
+  assert run(args + ["--stage", "train", "--stage", "plan", "--stage", "summary"]) == 0
+  assert json.loads((root / "summary.json").read_text()) == summary
+  with pytest.raises(SystemExit):
+    run(args + ["--config.train.num_stepz=3"])

@@ -23,6 +23,10 @@ One script for the whole experiment, in stages that each resume where an earlier
         --workdir workdirs/pusht-h100 --stage data --stage classifier          # on the host
     python experiments/pusht/run.py --profile h100 --workdir workdirs/pusht-h100 --minutes 9
 
+``--config.KEY=VALUE`` overrides change the profile's config (after ``--smoke``'s), e.g.
+``--config.train.num_steps=10000``; give the same ones to every command of a run (a changed
+config is refused by the resumed training).
+
 ``--minutes M`` stops after about M minutes, for jobs with a time limit: training is asked to
 save and stop (as on SIGTERM), and no new stage or K starts after the deadline; the script then
 exits 3, and the same command continues. Finished stages are skipped: the dataset and the
@@ -116,11 +120,21 @@ def main(argv=None) -> int:
                       help="classifier label: coverage >= this")
   parser.add_argument("--smoke", action="store_true",
                       help="tiny data, model and episodes: checks the plumbing in minutes")
-  args = parser.parse_args(argv)
+  args, extra = parser.parse_known_args(argv)
   stages = [s for s in STAGES if s in (args.stage or STAGES)]
   if set(stages) <= HOST_STAGES:  # before JAX is imported: keep an accelerator free
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
-  return Experiment(args).run(stages, Deadline(args.minutes))
+  from wmjax.config import OVERRIDE_PREFIX, ConfigError, split_overrides
+  try:
+    overrides, rest = split_overrides(extra)
+    if rest:
+      raise ConfigError(f"unrecognised arguments {rest}; config overrides look like "
+                        f"--config.KEY=VALUE")
+    args.overrides = [o[len(OVERRIDE_PREFIX):] for o in overrides]
+    experiment = Experiment(args)
+  except ConfigError as error:
+    parser.error(str(error))
+  return experiment.run(stages, Deadline(args.minutes))
 
 
 class Experiment:
@@ -140,6 +154,7 @@ class Experiment:
       self.overrides += SMOKE
       self.episodes, self.steps, self.plan_episodes, self.plan_steps = 4, 8, 2, 8
       self.candidates = [1, 3]
+    self.overrides += args.overrides  # the model's config: given to every stage that reads it
     if 1 not in self.candidates:
       raise SystemExit(f"--candidates must include 1 (the baseline of the gains), got "
                        f"{args.candidates}")
