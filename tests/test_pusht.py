@@ -138,8 +138,8 @@ def _experiment_script():
 EXPERIMENT_TINY = [
     "--smoke", "--video_format", "gif", "--success_coverage", "0.1",
     "--config.data.pusht.image_size=16", "--config.frame_shape=(16,16,3)",
-    "--config.data.pusht.episode_length=10", "--config.data.pusht.train_episodes=8",
-    "--config.data.pusht.test_episodes=4", "--config.data.pusht.batch=8",
+    "--config.data.pusht.episode_length=10", "--config.data.pusht.train_episodes=6",
+    "--config.data.pusht.test_episodes=2", "--config.data.pusht.batch=6",
     "--config.train.num_steps=2", "--config.optim.total_steps=2", "--config.optim.warmup_steps=1",
     "--config.train.checkpoint_every=2", "--config.train.eval_every=0",
     "--config.sampling.num_steps=2"]
