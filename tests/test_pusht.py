@@ -134,7 +134,7 @@ def _experiment_script():
   return module
 
 
-# experiments/pusht/run.py --smoke shrunk further: 16x16 frames, 8 + 4 short episodes, 2 steps
+# experiments/pusht/run.py --smoke shrunk further: 16x16 frames, 6 + 2 short episodes, 2 steps
 EXPERIMENT_TINY = [
     "--smoke", "--video_format", "gif", "--success_coverage", "0.1",
     "--config.data.pusht.image_size=16", "--config.frame_shape=(16,16,3)",
@@ -206,7 +206,6 @@ def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
     summarize(result, {**plan, "candidates": {"3": plan["candidates"]["3"]}})
   with pytest.raises(ValueError, match="was not evaluated"):
     summarize(result, plan, reward="vlm")
-
 
 
 @pytest.mark.slow

@@ -74,10 +74,13 @@ class Deadline:
     """Within this block, ask this process to stop by SIGTERM once the deadline has come (the
     training loop saves a checkpoint and stops), again every 10 s until the block ends: a
     SIGTERM that comes before the loop listens (while it compiles) is ignored."""
+    if self.end is None:  # no deadline: SIGTERM keeps its usual meaning
+      yield
+      return
     done = threading.Event()
 
     def send():
-      if self.end is not None and not done.wait(max(0.0, self.end - time.monotonic())):
+      if not done.wait(max(0.0, self.end - time.monotonic())):
         while not done.is_set():
           os.kill(os.getpid(), signal.SIGTERM)
           done.wait(10.0)
@@ -180,9 +183,9 @@ class Experiment:
 
   def wmjax(self, *command: str, overrides=()) -> int:
     from wmjax import cli
-    print("\n$ wmjax " + " ".join(command + tuple(f"--config.{o}" for o in overrides)),
-          flush=True)
-    return cli.main(list(command) + [f"--config.{o}" for o in overrides])
+    argv = list(command) + [f"--config.{o}" for o in overrides]
+    print("\n$ wmjax " + " ".join(argv), flush=True)
+    return cli.main(argv)
 
   def _check(self, code: int, command: str) -> None:
     if code:
@@ -272,11 +275,13 @@ class Experiment:
     print(f"\nwrote {self.path('summary.json')}:\n{json.dumps(summary, indent=2)}")
 
   def _trained_steps(self) -> int | None:
-    """The newest complete checkpoint's step (unfinished saves carry a suffix)."""
-    directory = os.path.join(self.model_dir, "checkpoints")
-    steps = [int(d) for d in os.listdir(directory) if d.isdigit()] if os.path.isdir(
-        directory) else []
-    return max(steps, default=None)
+    """The step a finished training ended at (its ``metrics.json``, written only at the end), or
+    None before that."""
+    metrics = os.path.join(self.model_dir, "metrics.json")
+    if not os.path.exists(metrics):
+      return None
+    with open(metrics) as f:
+      return json.load(f)["step"]
 
 
 def train_classifier(config, out: str, success_coverage: float, *, steps: int) -> dict:

@@ -168,7 +168,7 @@ def _device_memory(target: Target, budget_bytes: int | None, total: int | None) 
   return {
       "device_memory_gib": None if target.memory_bytes is None else target.memory_bytes / GIB,
       "limit_gib": None if limit is None else limit / GIB,
-      "fits": None if limit is None else total is not None and total <= limit,
+      "fits": False if total is None else None if limit is None else total <= limit,
   }
 
 
@@ -188,7 +188,7 @@ def refused_report(error: Exception, target: Target, budget_bytes: int | None = 
   temp = (float(found.group(1)) * 1024 ** ("KMGT".index(found.group(2)) - 2)) if found else None
   return {
       "arguments_gib": None, "outputs_gib": None, "temp_gib": temp, "total_gib": temp,
-      **_device_memory(target, budget_bytes, None), "fits": False,
+      **_device_memory(target, budget_bytes, None),
       "xla_flops_per_device": None, "refused": message.splitlines()[0],
   }
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from wmjax.env import RewardFn, WorldModelEnv
 from wmjax.eval import planning, policy_eval
-from wmjax.eval.video import comparison, stack_rows, write_video
+from wmjax.eval.video import VIDEO_FORMATS, comparison, stack_rows, write_video
 from wmjax.tasks.pusht import simulator as pusht
 from wmjax.tasks.pusht.dataset import INSTRUCTION, PushTConfig
 
@@ -77,7 +77,7 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
   ``agreement`` compares the world model's values with the simulator's and
   ``agreement_same_reward`` with ``simulator_reward``. ``scan``: roll out inside one jitted scan
   (pure-JAX policies only)."""
-  if video_format not in ("mp4", "gif"):
+  if f".{video_format}" not in VIDEO_FORMATS:
     raise ValueError(f"video_format must be 'mp4' or 'gif', got {video_format!r}")
   if len(policies) < 3 or not rewards:
     raise ValueError(f"need at least 3 policies and a reward, got {len(policies)} policies and "
