@@ -1,19 +1,29 @@
 """Push-T world model (gym-pusht) for policy evaluation and planning.
 
 48x48 RGB renders of scripted pushes at several noise levels (``wmjax.tasks.pusht.dataset``),
-2-dim actions (the agent's target position, standardised), 6-frame windows; an ST-DiT with 4x4
-patches (144 tokens a frame), WPE objective (per-frame noise levels, sigmoid schedule, v
-prediction) with causal temporal attention, 10-step DDIM. Rollouts keep 2 context frames and
-generate 4 per block, the length of the policies' action chunks.
+2-dim actions (the agent's target position, standardised, with the sines and cosines of
+2^k pi a beside each number); an ST-DiT with 4x4 patches (144 tokens a frame), each layer a
+temporal block then a spatial one, with both absolute (sin-cos) and relative (RoPE) positions over
+the patch grid: the action names an absolute place in the image, the move it causes is a relative
+offset. Trained on 3-frame windows, two clean frames and the next one noised (IRASim's regime), to
+predict the clean next frame (x0) at noise levels drawn logit-normal towards noise. Two context
+frames, because the agent follows a PD controller (a second-order system): one frame does not
+tell its velocity, so its next position would be ambiguous. The loss weighs the pixels within
+3 of an object (agent, T, goal) of the last context frame 21 times (``diffusion.object_weight=20,
+object_dilation=3``): the 3-pixel agent is under 1 % of the frame, and an unweighted MSE is
+lowest for a model that drops it (it did, also with two context frames). Rollouts chain one-frame blocks from two context frames,
+each in 2 DDIM steps with the temporal KV cache; the policies still act in chunks of 4
+(``data.pusht.chunk``), whatever the block length. ``experiments/pusht/RESULTS.md`` has the
+measurements behind each choice.
 
 Profiles (``configs/pusht.py:PROFILE``):
 
-- ``cpu`` (default): 1.9M parameters (depth 6, width 128), 640 training episodes, 3000 steps of
-  batch 8 in float32: about an hour on 2 CPU cores.
-- ``h100``: 32.5M parameters (depth 12, width 384, 6 heads) in bfloat16 with the fastest attention
-  the GPU has, 1920 training episodes, 5000 steps of batch 64 at learning rate 8e-4: about 7
-  minutes and 22 GB on one H100 (11.6 steps/s), checkpointed every 500 steps so that a run cut
-  by a 10-minute job limit resumes.
+- ``cpu`` (default): 1.9M parameters (depth 6, width 128), 640 training episodes, batch 16 in
+  float32, sized for the whole experiment (``experiments/pusht/run.py``) in 90 minutes on 2 CPU
+  cores.
+- ``h100``: the same recipe at 32.5M parameters (depth 12, width 384, 6 heads) in bfloat16 with
+  the fastest attention the GPU has, 1920 training episodes, 5000 steps of batch 64 at learning
+  rate 8e-4, checkpointed every 500 steps so that a run cut by a 10-minute job limit resumes.
 """
 
 import dataclasses
@@ -38,29 +48,30 @@ def get_config(profile: str = "cpu") -> ml_collections.ConfigDict:
   config.codec = codec_config(kind="pixel")
 
   config.data = ml_collections.ConfigDict(dict(
-      dataset="pusht", data_dir="~/tensorflow_datasets", frames=6, train_stride=1,
-      eval_stride=6, normalization="mean_std", num_workers=0, train_split="train",
+      dataset="pusht", data_dir="~/tensorflow_datasets", frames=3, train_stride=1,
+      eval_stride=8, normalization="mean_std", num_workers=0, train_split="train",
       eval_split="test"))
   config.data.pusht = ml_collections.ConfigDict(dataclasses.asdict(pusht))
   config.model = model_config(
-      in_channels=3, patch_size=4, depth=6, hidden_size=128, num_heads=4, num_frames=6,
-      action_dim=2, cond="per_frame", action_embed_ratio=0, causal_temporal=True,
-      action_dropout=0.1)
+      in_channels=3, patch_size=4, depth=6, hidden_size=128, num_heads=4, num_frames=3,
+      action_dim=2, cond="per_frame", action_embed_ratio=0, action_fourier_features=4,
+      causal_temporal=True, temporal_first=True, spatial_pos="sincos+rope", action_dropout=0.1)
   config.diffusion = ml_collections.ConfigDict(dict(
-      kind="gaussian", schedule="sigmoid", num_timesteps=1000, prediction="v",
-      regime="per_frame", num_context=2))
-  config.sampling = sampling_config(sampler="ddim", num_steps=10, context_level=15.0,
-                                    clip_denoised=True, kv_cache=True)
-  config.rollout = ml_collections.ConfigDict(dict(context=2, horizon=4))
+      kind="gaussian", schedule="sigmoid", num_timesteps=1000, prediction="x0",
+      regime="irasim", num_context=2, level_distribution="logit_normal", level_loc=1.0,
+      object_weight=20.0, object_dilation=3))
+  config.sampling = sampling_config(sampler="ddim", num_steps=2, matrix="autoregressive",
+                                    context_level=0.0, clip_denoised=True, kv_cache=True)
+  config.rollout = ml_collections.ConfigDict(dict(context=2, horizon=1, short_actions=4))
   config.optim = optim_config(learning_rate=2e-3, schedule="cosine", warmup_steps=100,
-                              total_steps=3000, b2=0.99, grad_clip=1.0, ema_decay=0.999)
+                              total_steps=1500, b2=0.99, grad_clip=1.0, ema_decay=0.999)
   config.train = ml_collections.ConfigDict(dict(
-      num_steps=3000, log_every=50, checkpoint_every=500, eval_every=1000, eval_windows=32,
+      num_steps=1500, log_every=50, checkpoint_every=500, eval_every=1500, eval_windows=32,
       max_checkpoints=3,
       # fit before the first step: compiled memory against the device's limit (or the budget)
       auto_fit=True, memory_budget_gib=None))
   config.mesh = (-1, 1, 1)  # (data, fsdp, tensor)
-  config.batch_size = 8  # global
+  config.batch_size = 16  # global
   config.seed = 0
   if profile == "h100":
     config.model.update(depth=12, hidden_size=384, num_heads=6, dtype="bfloat16",

@@ -22,12 +22,13 @@ RESOLUTION = (64, 64)
 
 def get_config() -> ml_collections.ConfigDict:
   import os
+  # the gridworld's recipe: 2-frame windows (a clean frame, the next one noised), 1-frame blocks
   config = load_config(os.path.join(os.path.dirname(os.path.abspath(__file__)), "gridworld.py"))
   config.name = "rlds"
   config.frame_shape = RESOLUTION + (3,)
   config.data = ml_collections.ConfigDict(dict(
       dataset="lerobot", builder_dir="", spec=spec_config(action_keys=()), image_key="",
-      resize="crop", missing_image="skip", frame_step=1, resolution=RESOLUTION, frames=6,
+      resize="crop", missing_image="skip", frame_step=1, resolution=RESOLUTION, frames=2,
       train_stride=1, eval_stride=6, normalization="mean_std", num_workers=0,
       train_split="train[:90%]", eval_split="train[90%:]"))
   config.model.patch_size = 4

@@ -7,8 +7,9 @@ import pytest
 
 from wmjax.diffusion import (FlowMatching, GaussianDiffusion, LevelSampling, SamplerConfig,
                              classifier_free_guidance, context_inputs, ddim_step, diffusion_loss,
-                             make_betas, sample_window, scheduling_matrix, training_levels,
-                             window_denoiser)
+                             make_betas, masked_loss_sum, sample_window, scheduling_matrix,
+                             training_levels, window_denoiser)
+from wmjax.diffusion.objectives import object_weights
 from wmjax.diffusion import schedules
 
 pytestmark = pytest.mark.unit
@@ -281,6 +282,29 @@ def test_loss_only_on_predicted_frames_in_irasim_regime(regime, expect_zero):
     assert float(loss) < 1e-6
   else:
     assert float(loss) > 0.1
+
+
+def test_object_weights_come_from_the_previous_frame():
+  """A 1-pixel object on a flat background: the values within ``dilation`` of where the previous
+  frame shows it weigh 1 + w, whatever the predicted frame shows; an error there costs 1 + w
+  times an error elsewhere."""
+  x0 = -np.ones((1, 3, 6, 6, 3), np.float32)
+  x0[0, 0, 1, 1] = x0[0, 1, 4, 4] = 1.0  # frame 2 is empty: its weights come from frame 1
+  weights = np.asarray(object_weights(jnp.asarray(x0), 9.0, 1))[..., 0]
+  assert weights.shape == (1, 3, 6, 6) and (weights[0, 0] == 1).all()
+  assert (weights[0, 1, 0:3, 0:3] == 10).all() and (weights[0, 1] == 10).sum() == 9
+  assert (weights[0, 2, 3:6, 3:6] == 10).all() and (weights[0, 2] == 10).sum() == 9
+  assert (np.asarray(object_weights(jnp.asarray(x0), 9.0, 0))[0, 2, ..., 0] == 10).sum() == 1
+  process = GaussianDiffusion.create("linear", prediction="x0")
+  levels, mask = jnp.zeros((1, 3), jnp.int32), jnp.asarray([[0.0, 0.0, 1.0]])
+  noise = jnp.zeros(x0.shape)
+
+  def loss(where, weight):  # x0 prediction, wrong by 1 at one pixel of frame 2
+    return float(masked_loss_sum(lambda x, lv: jnp.asarray(x0).at[0, 2, where[0], where[1]].add(
+        1.0), process, jnp.asarray(x0), levels, noise, mask, weight, 1)[0])
+
+  assert loss((5, 5), 9.0) == pytest.approx(10 * loss((0, 5), 9.0))
+  assert loss((5, 5), 0.0) == pytest.approx(loss((0, 5), 0.0))
 
 
 def test_regression_process_is_one_deterministic_step():

@@ -161,6 +161,19 @@ def test_rope_positions_run(fields):
   assert out.shape == x.shape and bool(jnp.isfinite(out).all())
 
 
+def test_sincos_plus_rope_is_both_positions():
+  """The position schemes have no parameters: one set of weights runs under each, and
+  'sincos+rope' gives neither the sin-cos-only nor the RoPE-only output."""
+  outs = {}
+  for pos in ("sincos", "rope", "sincos+rope"):
+    model, params, (x, t, a) = _model("frame", spatial_pos=pos)
+    outs[pos] = jit_apply(model)(params, x, t, a)
+  for other in ("sincos", "rope"):
+    assert float(jnp.abs(outs["sincos+rope"] - outs[other]).max()) > 1e-3
+  with pytest.raises(ValueError, match="spatial_pos must be one of"):
+    _model("frame", spatial_pos="rope+sincos")
+
+
 def test_axial_rope_scores_depend_only_on_the_2d_offset():
   q, k = jax.random.normal(jax.random.key(0), (2, 1, 6, 2, 8))
   grid = jnp.asarray([[0, 0], [0, 3], [2, 1], [4, 4], [1, 5], [3, 0]])
@@ -248,6 +261,7 @@ def _cached_output(model, params, x, t, a, c, mask=None, drop=None):
     ("per_frame", {}, 3),
     ("per_frame", dict(temporal_first=True), 2),
     ("per_frame", dict(temporal_first=True, spatial_pos="rope", temporal_pos="rope"), 2),
+    ("per_frame", dict(temporal_first=True, spatial_pos="sincos+rope"), 2),
 ])
 def test_extend_after_the_cached_context_equals_the_whole_window(cond, fields, c):
   model, params, (x, t, a) = _model(cond, **fields)

@@ -116,20 +116,28 @@ def brightness_policy(frames, key):
   return actions + jax.random.normal(key, actions.shape)
 
 
-@pytest.mark.parametrize("context,batch", [(1, 2), (2, 8)])
-def test_scan_equals_the_environment_loop(context, batch):
-  """B = 8 runs split over the 8 test devices; B = 2 does not divide and stays on one."""
+@pytest.mark.parametrize("context,batch,horizon", [(1, 2, 3), (2, 8, 3), (1, 2, 2)])
+def test_scan_equals_the_environment_loop(context, batch, horizon):
+  """B = 8 runs split over the 8 test devices; B = 2 does not divide and stays on one. The
+  policy's chunks of 3 run in one block of 3, or in blocks of 2 and 1 (horizon 2): the policy is
+  called once per chunk either way."""
   wm, params = tiny_world_model("irasim.py:S", "sampling.num_steps=2", "model.in_channels=3",
                                 "model.action_dim=2", frame_shape=(8, 8, 3))
   stats = ActionStats.compute(np.random.default_rng(0).normal(3.0, 2.0, (100, 2)), "toy", None)
   start = jax.random.uniform(jax.random.key(3), (batch, context, 8, 8, 3), minval=-1, maxval=1)
   context_actions = np.full((batch, context - 1, 2), 3.0, np.float32)
   rng, key = jax.random.key(5), jax.random.key(6)
-  horizon = 3
+  calls = []
+
+  def counted(frames, k):
+    calls.append(k)
+    return brightness_policy(frames, k)
+
   env = WorldModelEnv(wm, params, context=context, horizon=horizon, action_stats=stats, seed=rng)
-  looped = policy_eval.env_episodes(env, brightness_policy, start, steps=2 * horizon, key=key,
+  looped = policy_eval.env_episodes(env, counted, start, steps=5, key=key,
                                     context_actions=context_actions)
-  scanned = policy_eval.scan_episodes(wm, params, brightness_policy, start, 2, rng, key,
+  assert len(calls) == 2 and looped["frames"].shape[1] == context + 5
+  scanned = policy_eval.scan_episodes(wm, params, brightness_policy, start, 5, rng, key,
                                       horizon=horizon, action_stats=stats,
                                       context_actions=context_actions)
   assert len(scanned["frames"].sharding.device_set) == (8 if batch == 8 else 1)
@@ -137,7 +145,7 @@ def test_scan_equals_the_environment_loop(context, batch):
   # float32 rounding of differently fused programs, amplified by the random eps-model: a few
   # pixels of 12288 differ by up to 5e-4 at B = 8
   np.testing.assert_allclose(scanned["frames"], looped["frames"], rtol=1e-3, atol=1e-3)
-  with pytest.raises(ValueError, match="k>=3"):
-    policy_eval.scan_episodes(wm, params, lambda f, k: brightness_policy(f, k)[:, :1], start, 2,
-                              rng, key, horizon=horizon, action_stats=stats,
+  with pytest.raises(ValueError, match="k>=1, A=2"):
+    policy_eval.scan_episodes(wm, params, lambda f, k: brightness_policy(f, k)[..., :1], start,
+                              2, rng, key, horizon=horizon, action_stats=stats,
                               context_actions=context_actions)

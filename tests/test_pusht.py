@@ -18,6 +18,7 @@ from wmjax.data.sources import ArrayRecordEpisodes
 from wmjax.eval import rewards
 from wmjax.frames import to_model
 from wmjax.tasks.pusht import dataset as pusht_data
+from wmjax.tasks.pusht import metrics as pusht_metrics
 from wmjax.tasks.pusht import simulator as pusht
 from wmjax.tasks.pusht.evaluate import summarize
 from wmjax.tasks.pusht.rewards import coverage
@@ -49,6 +50,37 @@ def test_frame_coverage_and_centroids_follow_the_simulator():
 
 
 @pytest.mark.unit
+def test_agent_and_block_metrics_read_from_frames():
+  """A perfect prediction scores 0 px / IoU 1; an agent moved by 3 cells of 512/48 px is 3
+  pixels off; an erased agent is not found and costs half the frame."""
+  rng = np.random.default_rng(1)
+  agents = np.array([[100.0, 400.0], [400.0, 100.0]])
+  states = pusht.random_initial_states(rng, 2)
+  states[:, :2] = agents
+  truth, _ = _render(states)
+  moved = states.copy()
+  moved[:, 0] += 3 * 512 / 48
+  shifted, _ = _render(moved)
+  erased = truth.copy()
+  erased[np.asarray(pusht.object_masks(to_model(truth))[1])] = 255
+  pred = np.stack([truth, shifted, erased], 1)  # [E=2, T=3, 48, 48, 3]
+  got = pusht_metrics.pusht_metrics(pred, np.repeat(truth[:, None], 3, 1), {})
+  assert {k: v.shape for k, v in got.items()} == {
+      k: (2, 3) for k in ("agent_error_px", "agent_found", "agent_iou", "block_error_px",
+                          "block_iou")}
+  np.testing.assert_allclose(got["agent_error_px"][:, 0], 0.0)
+  np.testing.assert_allclose(got["agent_error_px"][:, 1], 3.0, atol=0.6)
+  np.testing.assert_allclose(got["agent_error_px"][:, 2], 24.0)
+  np.testing.assert_allclose(got["agent_found"], [[1, 1, 0]] * 2)
+  np.testing.assert_allclose(got["agent_iou"][:, 0], 1.0)
+  assert (got["agent_iou"][:, 1:] == 0).all()  # moved by its own width / gone
+  np.testing.assert_allclose(got["block_iou"][:, 0], 1.0)
+  assert (got["block_error_px"][:, :2] < 0.5).all()  # the agent off the block: the T unchanged
+  masks = pusht_metrics.pusht_masks(pred, np.repeat(truth[:, None], 3, 1), {})
+  assert masks.shape == (2, 3, 48, 48) and masks[:, 1].sum() > masks[:, 0].sum()
+
+
+@pytest.mark.unit
 def test_the_pusher_beats_staying_and_noise_hurts():
   states = pusht.random_initial_states(np.random.default_rng(1), 12)
   final = {}
@@ -66,7 +98,10 @@ def test_the_pusher_beats_staying_and_noise_hurts():
 @pytest.mark.unit
 def test_config_profiles():
   cpu, h100 = (load_config(str(ROOT / "configs" / f"pusht.py:{p}")) for p in ("cpu", "h100"))
-  assert (cpu.model.depth, cpu.batch_size, cpu.model.dtype) == (6, 8, "float32")
+  assert (cpu.model.depth, cpu.batch_size, cpu.model.dtype) == (6, 16, "float32")
+  for profile in (cpu, h100):  # one recipe: the next frame from two clean ones, in 2 DDIM steps
+    assert (profile.model.num_frames, profile.rollout.context, profile.rollout.horizon) == (3, 2, 1)
+    assert (profile.diffusion.prediction, profile.sampling.num_steps) == ("x0", 2)
   assert (h100.model.depth, h100.model.hidden_size, h100.batch_size) == (12, 384, 64)
   assert (h100.model.dtype, h100.data.pusht.train_episodes) == ("bfloat16", 1920)
   assert load_config(str(ROOT / "configs" / "pusht.py")).to_dict() == cpu.to_dict()
@@ -201,6 +236,12 @@ def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
   assert summary["planning"]["3"]["gain_mean"] == pytest.approx(gains.mean())
   assert summary["planning"]["3"]["mean"] == pytest.approx(three["final_coverage"]["mean"])
   assert summary["planning"]["1"]["gain_mean"] == 0.0
+  for k in ("1", "3"):  # exploitability: K = 1's single candidate is imagined too
+    row = plan["candidates"][k]["world_model"]
+    assert row["imagined_value"]["rollouts"] == row["simulator_value"]["rollouts"] == 2 * 2
+    assert summary["planning"][k]["exploitability_gap"] == pytest.approx(
+        row["imagined_value"]["mean"] - row["simulator_value"]["mean"])
+    assert "exploitability_gap" not in summary["planning_lookahead"][k]
   json.dumps(summary, allow_nan=False)  # NaN correlations are None: strict JSON
   with pytest.raises(ValueError, match="over K = 1"):
     summarize(result, {**plan, "candidates": {"3": plan["candidates"]["3"]}})
@@ -218,6 +259,9 @@ def test_experiment_script_runs_its_stages_resumably(experiment):
   assert run(args) == 0  # data, classifier and model done before: skipped
   summary = json.loads((root / "summary.json").read_text())
   assert (summary["profile"], summary["train_steps"]) == ("cpu", 2)
+  assert summary["minutes"] == pytest.approx(sum(summary["stage_minutes"].values()), abs=0.05)
+  assert set(summary["stage_minutes"]) == {"data", "classifier", "train", "policy", "plan",
+                                           "summary"}
   assert set(summary["planning"]) == set(summary["planning_lookahead"]) == {"1", "3"}
   assert set(summary["policies"]) == {"push", "push@0.1", "push@0.2", "push@0.5", "stay"}
   plan = json.loads((root / "plan" / "plan.json").read_text())  # the K runs merged
@@ -227,6 +271,10 @@ def test_experiment_script_runs_its_stages_resumably(experiment):
   assert (root / "policy_eval" / "videos" / "stay.gif").exists()
   (root / "summary.json").unlink()  # every stage is found done; the summary is the same
   assert run(args + ["--stage", "train", "--stage", "plan", "--stage", "summary"]) == 0
-  assert json.loads((root / "summary.json").read_text()) == summary
+  again = json.loads((root / "summary.json").read_text())
+  assert again["minutes"] >= summary["minutes"]  # wall time adds up over the runs
+  timing = ("minutes", "stage_minutes")
+  assert {k: v for k, v in again.items() if k not in timing} == {
+      k: v for k, v in summary.items() if k not in timing}
   with pytest.raises(SystemExit):
     run(args + ["--config.train.num_stepz=3"])

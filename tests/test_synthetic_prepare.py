@@ -1,4 +1,5 @@
-"""Generated datasets are written once, also when several jobs start together."""
+"""Generated datasets are written once, also when several jobs start together, and ask for their
+task's import when it is missing."""
 
 import os
 import subprocess
@@ -27,3 +28,12 @@ def test_two_processes_preparing_one_dataset_both_succeed(tmp_path):
   (path,) = paths
   assert os.path.isfile(os.path.join(path, "dataset_info.json"))
   assert not [d for d in os.listdir(os.path.dirname(path)) if d.startswith("incomplete")]
+
+
+def test_a_built_in_dataset_before_its_task_is_imported_names_the_import(monkeypatch):
+  import ml_collections
+
+  from wmjax.data import sources
+  monkeypatch.delitem(sources.GENERATED, "gridworld", raising=False)
+  with pytest.raises(ValueError, match="`import wmjax.tasks` first"):
+    sources.dataset_dir(ml_collections.ConfigDict(dict(dataset="gridworld", data_dir="/tmp")))

@@ -139,6 +139,11 @@ class DiffusionConfig:
   level_distribution: str = "default"
   level_loc: float = 0.0
   level_scale: float = 1.0
+  # > 0: the loss weighs the values near the objects of the previous (context) frame by
+  # 1 + object_weight, grown by object_dilation pixels (wmjax.diffusion.object_weights): small
+  # objects that an unweighted MSE barely sees
+  object_weight: float = 0.0
+  object_dilation: int = 0
 
 
 @dataclasses.dataclass(frozen=True)

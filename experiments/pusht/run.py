@@ -14,10 +14,12 @@ One script for the whole experiment, in stages that each resume where an earlier
    coverage read from the imagined frames and by the classifier (``wmjax eval-policy``);
 5. ``plan``: model-predictive control ranking K candidate chunks from the noisy pusher, executed
    in gym-pusht, one K at a time (``wmjax plan``);
-6. ``summary``: WORKDIR/summary.json (``pearson``, ``spearman``, ``ranking_matches``, and per K
-   the final coverage with its paired gain over K = 1) and the tables.
+6. ``summary``: WORKDIR/summary.json (``pearson``, ``spearman``, ``ranking_matches``; per K the
+   final coverage with its paired gain over K = 1 and the chosen plans' imagined value beside
+   their value in the simulator, the exploitability gap; ``minutes`` of wall time summed over the
+   stages and their resumes, from WORKDIR/timing.json) and the tables.
 
-    python experiments/pusht/run.py --workdir workdirs/pusht                 # CPU, about 2 hours
+    python experiments/pusht/run.py --workdir workdirs/pusht                 # CPU, <= 90 minutes
     python experiments/pusht/run.py --workdir /tmp/pusht --smoke             # plumbing, minutes
     JAX_PLATFORMS=cpu python experiments/pusht/run.py --profile h100 \\
         --workdir workdirs/pusht-h100 --stage data --stage classifier          # on the host
@@ -33,8 +35,9 @@ exits 3, and the same command continues. Finished stages are skipped: the datase
 classifier are kept, training resumes from its checkpoint, ``policy_eval/policy_eval.json`` and
 each ``plan/K<k>/plan.json`` mark their work done.
 
-Outputs land in WORKDIR: data/, classifier/, model/, policy_eval/, plan/, summary.json and
-results.json (all raw results).
+Outputs land in WORKDIR: data/, classifier/, model/, policy_eval/ (with videos/: per policy an
+mp4 or GIF and a PNG frame grid, simulator beside world model), plan/, summary.json, results.json
+(all raw results) and timing.json.
 """
 
 from __future__ import annotations
@@ -112,8 +115,9 @@ def main(argv=None) -> int:
   parser.add_argument("--plan_episodes", type=int, default=20, help="seeds for planning")
   parser.add_argument("--plan_steps", type=int, default=24)
   parser.add_argument("--candidates", default="1,5,10,50", help="K values, with 1")
-  parser.add_argument("--plan_sampling_steps", type=int, default=4,
-                      help="DDIM steps when imagining planning candidates")
+  parser.add_argument("--plan_sampling_steps", type=int, default=None,
+                      help="sampler steps when imagining planning candidates (default: the "
+                           "config's sampling.num_steps)")
   parser.add_argument("--lookahead", action=argparse.BooleanOptionalAction, default=True,
                       help="also plan with the simulator as the model (a reference that does "
                            "not depend on the world model; default on)")
@@ -175,11 +179,33 @@ class Experiment:
               f"continue", flush=True)
         return UNFINISHED
       print(f"\n## stage {stage}", flush=True)
-      if getattr(self, stage)(deadline) is False:
+      start = time.monotonic()
+      finished = getattr(self, stage)(deadline) is not False
+      self._add_time(stage, time.monotonic() - start)
+      if not finished:
         print(f"\nstage {stage!r} stopped at the deadline; run the same command again to "
               f"continue", flush=True)
         return UNFINISHED
     return 0
+
+  def _add_time(self, stage: str, seconds: float) -> None:
+    """Add ``seconds`` to the stage's wall time in WORKDIR/timing.json (summed over resumes)."""
+    os.makedirs(self.workdir, exist_ok=True)
+    path = self.path("timing.json")
+    timing = {}
+    if os.path.exists(path):
+      with open(path) as f:
+        timing = json.load(f)
+    timing[stage] = timing.get(stage, 0.0) + seconds
+    with open(path, "w") as f:
+      json.dump(timing, f, indent=2)
+
+  def _minutes(self) -> dict:
+    """Wall minutes per stage so far and in all (WORKDIR/timing.json)."""
+    with open(self.path("timing.json")) as f:
+      timing = json.load(f)
+    return {"minutes": round(sum(timing.values()) / 60, 2),
+            "stage_minutes": {k: round(v / 60, 2) for k, v in timing.items()}}
 
   def wmjax(self, *command: str, overrides=()) -> int:
     from wmjax import cli
@@ -240,7 +266,8 @@ class Experiment:
             "plan", "--workdir", self.model_dir, "--episodes", str(self.plan_episodes),
             "--steps", str(self.plan_steps), "--candidates", str(k), "--out", out,
             *(["--lookahead"] if self.args.lookahead else []),
-            overrides=[f"sampling.num_steps={self.args.plan_sampling_steps}"]), "plan")
+            overrides=([] if self.args.plan_sampling_steps is None else
+                       [f"sampling.num_steps={self.args.plan_sampling_steps}"])), "plan")
       with open(os.path.join(out, "plan.json")) as f:
         result = json.load(f)
       rows.update(result["candidates"])
@@ -261,7 +288,7 @@ class Experiment:
       with open(self.path(file)) as f:
         results[name] = json.load(f)
     summary = {"profile": self.args.profile, "config": self.config.name,
-               "train_steps": self._trained_steps(),
+               "train_steps": self._trained_steps(), **self._minutes(),
                **summarize(results["policy_eval"], results["plan"], "coverage")}
     with open(self.path("results.json"), "w") as f:
       json.dump(results, f, indent=2)

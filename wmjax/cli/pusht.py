@@ -23,9 +23,10 @@ def eval_policy(args, extra) -> int:
   rank agreement, MMRV, value gap; writes policy_eval.json, policy_eval.md and one video per
   policy (simulator | world model | difference)."""
   from wmjax.eval.rewards import reward_from_spec
-  from wmjax.tasks.pusht.evaluate import evaluate_policies, policies_from_specs, policy_report
+  from wmjax.tasks.pusht.evaluate import (evaluate_policies, policies_from_specs, policy_chunk,
+                                          policy_report)
   model = _load(args, extra)
-  policies = policies_from_specs(args.policy, model.config.rollout.horizon)
+  policies = policies_from_specs(args.policy, policy_chunk(model.config))
   rewards = {spec: reward_from_spec(spec) for spec in args.reward or ["coverage"]}
   out = args.out or f"{args.workdir}/policy_eval"
   result = evaluate_policies(model, policies, rewards, episodes=args.episodes, steps=args.steps,
@@ -42,14 +43,15 @@ def plan(args, extra) -> int:
   scored by the value function, and the best one's first actions are executed; final simulator
   coverage for each K."""
   from wmjax.eval.rewards import reward_from_spec
-  from wmjax.tasks.pusht.evaluate import plan_in_simulator, proposal_from_spec
+  from wmjax.tasks.pusht.evaluate import plan_in_simulator, policy_chunk, proposal_from_spec
   model = _load(args, extra)
-  proposal = proposal_from_spec(args.proposal, args.plan_length or model.config.rollout.horizon)
+  length = args.plan_length or policy_chunk(model.config)
+  proposal = proposal_from_spec(args.proposal, length)
   out = args.out or f"{args.workdir}/plan"
   candidates = [int(k) for k in args.candidates.split(",")]
   result = plan_in_simulator(model, proposal, reward_from_spec(args.value), candidates,
                              episodes=args.episodes, steps=args.steps, seed=args.seed,
-                             execute=args.execute, lookahead=args.lookahead, out=out)
+                             execute=args.execute or length, lookahead=args.lookahead, out=out)
   print(result["table"])
   print(f"wrote {out}/plan.json and plan.md")
   return 0
@@ -96,9 +98,10 @@ def add_parser(sub) -> None:
                        help="proposal policy: push:NOISE | stay | module:attribute (default "
                             "push:0.2)")
   planner.add_argument("--plan_length", type=int, default=None,
-                       help="actions per candidate (default: the model's rollout horizon)")
+                       help="actions per candidate (default: the policy chunk the data was "
+                            "collected with, data.pusht.chunk)")
   planner.add_argument("--execute", type=int, default=None,
-                       help="actions executed before replanning (default: the rollout horizon)")
+                       help="actions executed before replanning (default: the whole candidate)")
   planner.add_argument("--value", default="coverage",
                        help="value function on imagined frames: coverage | vlm | classifier:DIR | "
                             "goal:IMAGE (default coverage)")

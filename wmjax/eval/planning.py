@@ -64,8 +64,8 @@ def sphere_proposal(position_fn: Callable[[Any], Any], radius: float, length: in
 @dataclasses.dataclass(frozen=True)
 class Plan:
   """``best [B, n, A]`` raw actions, ``index [B]`` of the chosen candidate, ``scores [B, K]``
-  (NaN when ``K = 1``: nothing imagined), ``candidates [B, K, n, A]``, ``imagined [B, K, c+n, H,
-  W, 3]`` (None when ``K = 1``)."""
+  (NaN when ``K = 1``: nothing imagined, unless the planner's ``score_single``), ``candidates
+  [B, K, n, A]``, ``imagined [B, K, c+n, H, W, 3]`` (None when nothing was imagined)."""
 
   best: np.ndarray
   index: np.ndarray
@@ -89,6 +89,7 @@ class Planner:
   normalization: str = "mean_std"
   codec: Codec = dataclasses.field(default_factory=PixelCodec)
   instruction: Any = None
+  score_single: bool = False  # K = 1: imagine and score the one candidate too (else NaN scores)
 
   def __post_init__(self):
     if self.num_candidates < 1:
@@ -128,7 +129,7 @@ class Planner:
     b, k = candidates.shape[:2]
     if k != self.num_candidates:
       raise ValueError(f"the proposal returned {k} candidates, expected {self.num_candidates}")
-    if k == 1:
+    if k == 1 and not self.score_single:
       return Plan(candidates[:, 0], np.zeros(b, int), np.full((b, 1), np.nan), candidates, None)
     imagined = self.imagine(frames, context_actions, candidates, rollout_key)
     flat = imagined.reshape((b * k,) + imagined.shape[2:])

@@ -43,20 +43,25 @@ Policy = Callable[[Any, jax.Array], Any]
 def env_episodes(env: WorldModelEnv, policy: Policy, initial_frames, steps: int, key: jax.Array,
                  *, instruction=None, context_actions=None) -> dict[str, np.ndarray]:
   """Roll ``policy`` out for ``steps`` frames in ``env`` from ``initial_frames [B, c0, H, W, 3]``
-  (and the raw ``context_actions [B, c0-1, A]`` between them, if known). The policy sees the
-  last ``env.context`` frames and its chunk is cut to the env's horizon (and to the frames left).
-  Returns ``frames [B, c0+steps, H, W, 3]`` in [-1, 1] and the raw ``actions [B, steps, A]``."""
+  (and the raw ``context_actions [B, c0-1, A]`` between them, if known). The policy is called on
+  the last ``env.context`` frames whenever its previous chunk is used up (call ``i`` with
+  ``fold_in(key, i)``, as :func:`wmjax.tasks.pusht.simulator.simulate_policy` calls it in the
+  simulator), and each chunk runs in blocks of at most ``env.horizon`` actions: a policy acts
+  the same whatever the model's block length. Returns ``frames [B, c0+steps, H, W, 3]`` in
+  [-1, 1] and the raw ``actions [B, steps, A]``."""
   if steps < 1:
     raise ValueError(f"steps must be >= 1, got {steps}")
   env.reset(initial_frames, instruction, context_actions)
   done, actions = 0, []
+  chunk = np.zeros((env.num_envs, 0, env.action_dim), np.float32)
   for call in itertools.count():
     if done >= steps:
       break
     chunk = np.asarray(policy(env.video()[:, -env.context:], jax.random.fold_in(key, call)))
     _check_chunk(chunk, env.num_envs, env.action_dim)
-    chunk = chunk[:, :min(env.horizon, steps - done)]
-    env.step(chunk)
+    chunk = chunk[:, :steps - done]
+    for first in range(0, chunk.shape[1], env.horizon):
+      env.step(chunk[:, first:first + env.horizon])
     actions.append(chunk)
     done += chunk.shape[1]
   return {"frames": env.video(), "actions": np.concatenate(actions, 1).astype(np.float32)}
@@ -70,24 +75,28 @@ def _check_chunk(chunk, batch: int, action_dim: int) -> None:
 
 
 def scan_episodes(world_model: WorldModel, params: Any, policy: Policy, initial_frames,
-                  num_blocks: int, rng: jax.Array, key: jax.Array, *, horizon: int,
+                  steps: int, rng: jax.Array, key: jax.Array, *, horizon: int,
                   action_stats: ActionStats | None = None, normalization: str = "mean_std",
                   codec: Codec | None = None, context_actions=None) -> dict[str, jax.Array]:
-  """Roll a pure-JAX ``policy`` out for ``num_blocks`` blocks of ``horizon`` frames inside one
-  jitted scan. The window is ``initial_frames [B, c, H, W, 3]`` (``c`` fixed; the model's
-  context); the policy gets the window's RGB frames and must return at least ``horizon`` raw
-  actions. Returns ``frames [B, c+num_blocks*horizon, H, W, 3]`` and raw ``actions``. The
-  batch is split over the local devices when it divides evenly between them."""
+  """Roll a pure-JAX ``policy`` out for ``steps`` frames inside one jitted scan, as
+  :func:`env_episodes` does with an environment of the same ``horizon`` (the same frames for
+  the same keys): the window is ``initial_frames [B, c, H, W, 3]`` (``c`` fixed; the model's
+  context), the policy gets the window's RGB frames whenever its previous chunk of ``k`` raw
+  actions is used up, and each chunk runs in blocks of at most ``horizon`` frames. Returns
+  ``frames [B, c+steps, H, W, 3]`` and raw ``actions [B, steps, A]``. The batch is split over
+  the local devices when it divides evenly between them."""
   codec = codec or PixelCodec()
   frames = to_model(initial_frames)
   if frames.ndim != 5:
     raise ValueError(f"initial_frames must be [B, c, H, W, C], got {tuple(frames.shape)}")
   b, c = frames.shape[:2]
   net = world_model.network
-  if num_blocks < 1 or horizon < 1 or c + horizon > net.num_frames:
-    raise ValueError(f"need num_blocks >= 1 and 1 <= horizon <= {net.num_frames - c} for a "
-                     f"{c}-frame window, got num_blocks={num_blocks}, horizon={horizon}")
+  if steps < 1 or horizon < 1 or c + horizon > net.num_frames:
+    raise ValueError(f"need steps >= 1 and 1 <= horizon <= {net.num_frames - c} for a "
+                     f"{c}-frame window, got steps={steps}, horizon={horizon}")
   a = net.action_dim
+  chunk = jax.eval_shape(policy, jax.ShapeDtypeStruct(frames.shape, jnp.float32), key)
+  _check_chunk(chunk, b, a)
   known = np.zeros((b, c - 1), bool)
   history = jnp.zeros((b, c - 1, a), jnp.float32)
   if context_actions is not None:
@@ -96,11 +105,11 @@ def scan_episodes(world_model: WorldModel, params: Any, policy: Policy, initial_
   window = codec.encode(frames, jax.random.split(rng)[1])
   # The episodes are split over the local devices (when B divides evenly); the scan follows.
   frames, window, history, known = shard_rollout_batch(frames, window, history, jnp.asarray(known))
-  run = _scan_fn(world_model, policy, codec, _StatsKey(action_stats), normalization, num_blocks,
-                 horizon)
+  run = _scan_fn(world_model, policy, codec, _StatsKey(action_stats), normalization, steps,
+                 -(-steps // chunk.shape[1]), horizon)
   with mesh_context(window):
     frames, actions = run(params, frames, window, history, known, rng, key)
-  return {"frames": frames, "actions": actions}
+  return {"frames": frames[:, :c + steps], "actions": actions[:, :steps]}
 
 
 def _normalizer(action_stats, normalization, action_dim):
@@ -125,34 +134,50 @@ class _StatsKey:
 
 
 @functools.lru_cache(maxsize=32)
-def _scan_fn(world_model, policy, codec, stats_key, normalization, num_blocks, horizon):
-  """The jitted closed-loop scan for one (model, policy, codec, statistics, shape) combination."""
+def _scan_fn(world_model, policy, codec, stats_key, normalization, steps, num_calls, horizon):
+  """The jitted closed-loop scan over ``num_calls`` policy calls (``steps`` actions) for one
+  (model, policy, codec, statistics, shape) combination."""
   normalize = _normalizer(stats_key.stats, normalization, world_model.network.action_dim)
 
-  def body(params, rng, key, carry, k):
+  def block(params, rng, carry, actions, valid, index):
+    """One block of ``n <= horizon`` actions ``[B, n, A]`` of which the ``valid [n]`` ones are
+    taken: the others and the window's rest up to ``horizon`` are masked and zero, as
+    :meth:`WorldModelEnv.step` pads a shorter chunk."""
     rgb, window, history, known = carry
-    raw = policy(rgb, jax.random.fold_in(key, k))
-    if raw.ndim != 3 or raw.shape[0] != rgb.shape[0] or raw.shape[1] < horizon:
-      raise ValueError(f"the policy must return actions [B={rgb.shape[0]}, k>={horizon}, A], got "
-                       f"shape {tuple(raw.shape)}")
-    raw = raw[:, :horizon]
-    actions = normalize(raw)
-    window_actions = jnp.concatenate([history, actions], 1)
-    window_mask = jnp.concatenate([known, jnp.ones(actions.shape[:2], bool)], 1)
+    n = actions.shape[1]
+    actions = jnp.where(valid[None, :, None], actions, 0.0)
+    padded = jnp.pad(actions, ((0, 0), (0, horizon - n), (0, 0)))
+    mask = jnp.pad(valid, (0, horizon - n))
+    window_actions = jnp.concatenate([history, padded], 1)
+    window_mask = jnp.concatenate([known, jnp.broadcast_to(mask, (known.shape[0], horizon))], 1)
     new = sample_block_traceable(world_model, params, window, window_actions, window_mask,
-                                 block_key(rng, k))
+                                 block_key(rng, index))[:, :n]
     new_rgb = codec.decode(new)
     c = window.shape[1]
-    keep = window_actions.shape[1] - (c - 1)  # the last c-1 actions stay in the window
+    so_far = jnp.concatenate([history, actions], 1)[:, n:]  # the last c-1 stay in the window
+    known_so_far = jnp.concatenate([known, jnp.ones(actions.shape[:2], bool)], 1)[:, n:]
     carry = (jnp.concatenate([rgb, new_rgb], 1)[:, -c:], jnp.concatenate([window, new], 1)[:, -c:],
-             window_actions[:, keep:], window_mask[:, keep:])
-    return carry, (new_rgb, raw)
+             so_far, known_so_far)
+    return carry, new_rgb
+
+  def call(params, rng, key, carry, i):
+    raw = policy(carry[0], jax.random.fold_in(key, i))
+    actions = normalize(raw)
+    k = raw.shape[1]
+    blocks = -(-k // horizon)
+    valid = i * k + jnp.arange(k) < steps  # the last chunk is cut at the episode's end
+    new_rgb = []
+    for j in range(blocks):
+      part = slice(j * horizon, (j + 1) * horizon)
+      carry, rgb = block(params, rng, carry, actions[:, part], valid[part], i * blocks + j)
+      new_rgb.append(rgb)
+    return carry, (jnp.concatenate(new_rgb, 1), raw)
 
   @jax.jit
   def run(params, rgb, window, history, known, rng, key):
-    step = functools.partial(body, params, rng, key)
-    _, (new_rgb, raw) = jax.lax.scan(step, (rgb, window, history, known), jnp.arange(num_blocks))
-    new_rgb = jnp.moveaxis(new_rgb, 0, 1)  # [B, K, h, H, W, 3]
+    step = functools.partial(call, params, rng, key)
+    _, (new_rgb, raw) = jax.lax.scan(step, (rgb, window, history, known), jnp.arange(num_calls))
+    new_rgb = jnp.moveaxis(new_rgb, 0, 1)  # [B, calls, k, H, W, 3]
     new_rgb = new_rgb.reshape((new_rgb.shape[0], -1) + new_rgb.shape[3:])
     raw = jnp.moveaxis(raw, 0, 1)
     return (jnp.concatenate([rgb, new_rgb], 1),

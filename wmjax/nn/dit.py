@@ -49,8 +49,9 @@ REMAT_POLICIES = {
 }
 # How a token knows where it is: "sincos" adds fixed sin-cos embeddings to the tokens; "rope"
 # rotates queries and keys (1-D over frames, axial 2-D over the patch grid), so attention scores
-# depend on relative offsets.
-POSITIONS = ("sincos", "rope")
+# depend on relative offsets; "sincos+rope" does both, for actions that name absolute positions
+# (a target in the image) while moves are relative offsets.
+POSITIONS = ("sincos", "rope", "sincos+rope")
 
 
 class LayerStack(nn.Module):
@@ -162,9 +163,9 @@ class STDiT(nn.Module):
     self.null_action = self.param("null_action", logical(nn.initializers.normal(0.02), "embed"),
                                   (d,))
     self.blocks = LayerStack(self.depth // 2, self.num_heads, self.mlp_ratio, self.causal_temporal,
-                             self.temporal_pos == "rope", self.attention_impl, dtype,
+                             "rope" in self.temporal_pos, self.attention_impl, dtype,
                              self.scan_layers, self.remat, self.temporal_first,
-                             self.spatial_pos == "rope")
+                             "rope" in self.spatial_pos)
     self.final_layer = layers.FinalLayer(self.patch_size ** 2 * self.in_channels, dtype=dtype)
 
   @property
@@ -320,9 +321,9 @@ class STDiT(nn.Module):
     gh, gw = h // self.patch_size, w // self.patch_size
     tokens = self.patch_embed(x.astype(dtype))  # [B, m, P, D]
     pos = np.zeros((1, 1, 1, self.hidden_size))
-    if self.spatial_pos == "sincos":
+    if "sincos" in self.spatial_pos:
       pos = pos + layers.sincos_2d(self.hidden_size, gh, gw)[None, None]
-    if self.temporal_pos == "sincos":
+    if "sincos" in self.temporal_pos:
       pos = pos + layers.sincos_1d(self.hidden_size, np.arange(first, first + m))[None, :, None]
     tokens = tokens + pos.astype(dtype)
     rows, cols = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")

@@ -16,7 +16,6 @@ frames and the (known) actions between them as the simulator.
 from __future__ import annotations
 
 import json
-import math
 import os
 from typing import Any
 
@@ -25,7 +24,8 @@ import numpy as np
 
 from wmjax.env import RewardFn, WorldModelEnv
 from wmjax.eval import planning, policy_eval
-from wmjax.eval.video import VIDEO_FORMATS, comparison, stack_rows, write_video
+from wmjax.eval.video import (VIDEO_FORMATS, comparison, frame_grid, stack_rows, write_png,
+                              write_video)
 from wmjax.tasks.pusht import simulator as pusht
 from wmjax.tasks.pusht.dataset import INSTRUCTION, PushTConfig
 
@@ -36,6 +36,12 @@ def initial_states(config, episodes: int, seed: int) -> np.ndarray:
   params = PushTConfig.from_dict(config.data.get("pusht") or {})  # defaults where not Push-T
   return pusht.random_initial_states(np.random.default_rng(seed), episodes,
                                      max_offset=params.max_offset, max_angle=params.max_angle)
+
+
+def policy_chunk(config) -> int:
+  """Actions a Push-T policy returns per call: the chunk the config's dataset was collected
+  with, whatever the model's block length (``rollout.horizon``)."""
+  return PushTConfig.from_dict(config.data.get("pusht") or {}).chunk
 
 
 def _image_size(model) -> int:
@@ -69,7 +75,9 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
   """Values of ``policies`` in the simulator and in the world model ``model`` (a
   :class:`wmjax.model.LoadedModel`), and their agreement, for every reward function
   in ``rewards`` (all scored on the same rollouts). With ``out``, ``videos`` episodes per policy
-  are written to ``out/videos/POLICY.VIDEO_FORMAT`` (``mp4`` or ``gif``).
+  are written to ``out/videos/POLICY.VIDEO_FORMAT`` (``mp4`` or ``gif``: simulator | world
+  model | difference) and ``out/videos/POLICY.png`` (a frame grid, the simulator's row above the
+  world model's, every policy chunk's first frame).
 
   Per policy: ``simulator`` (true final coverage) and, per reward, ``simulator_reward`` (the
   reward on the simulator's frames: what a perfect world model would score) and ``world_model``
@@ -96,10 +104,10 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
     rollout_key = jax.random.fold_in(jax.random.key(seed + 1), index)
     if scan:
       imagined = policy_eval.scan_episodes(
-          model.world_model, model.params, policy, start, math.ceil(steps / h), rollout_key,
+          model.world_model, model.params, policy, start, steps, rollout_key,
           policy_key, horizon=h, action_stats=model.action_stats,
           normalization=config.data.normalization, codec=model.codec, context_actions=known)
-      imagined = np.asarray(imagined["frames"])[:, :c + steps]
+      imagined = np.asarray(imagined["frames"])
     else:
       env = WorldModelEnv.from_model(model, seed=rollout_key)
       imagined = policy_eval.env_episodes(env, policy, start, steps, policy_key,
@@ -112,9 +120,14 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
           "world_model": policy_eval.policy_value(policy_eval.episode_returns(
               imagined, reward_fn, INSTRUCTION, start=c - 1))}
     if out and videos:
-      rows = [comparison(truth["frames"][i], imagined[i]) for i in range(min(videos, episodes))]
+      shown = range(min(videos, episodes))
+      rows = [comparison(truth["frames"][i], imagined[i]) for i in shown]
       videos_written[name] = write_video(os.path.join(out, "videos", f"{name}.{video_format}"),
                                          stack_rows(rows))
+      # every chunk's first frame: simulator above world model, two rows per episode
+      every = slice(c - 1, None, policy_chunk(config))
+      write_png(os.path.join(out, "videos", f"{name}.png"), frame_grid(
+          [video[every] for i in shown for video in (truth["frames"][i], imagined[i])]))
 
   simulator = [values[n]["simulator"] for n in names]
   result = {"policies": {n: {"simulator": values[n]["simulator"].to_dict()} for n in names},
@@ -182,9 +195,18 @@ def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
   """Final simulator coverage of model-predictive control with ``K`` candidates per replanning,
   for each ``K`` in ``candidates`` (``K = 1``: the proposal alone), from the same states;
   ``lookahead`` adds the same control with :class:`SimulatorLookahead` in place of the world
-  model, for reference."""
+  model, for reference. ``execute``: actions run before replanning (default: the Push-T policy
+  chunk, :func:`policy_chunk`).
+
+  Exploitability: the world-model planner also imagines the single candidate of ``K = 1``, and
+  for every ``K`` the row keeps ``imagined_value`` (``value_fn`` on the chosen plan's last
+  imagined frame) beside ``simulator_value`` (``value_fn`` on the simulator's frame after that
+  plan ran), over every replanning of every episode; ``exploitability_gap`` is their mean
+  paired difference. A planner that picks the candidates whose imagined outcome the model gets
+  most wrong opens this gap as ``K`` grows."""
   config = model.config
   c, h = config.rollout.context, config.rollout.horizon
+  execute = execute or policy_chunk(config)
   size = _image_size(model)
   states = initial_states(config, episodes, seed)
   rows = {}
@@ -197,7 +219,7 @@ def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
         planner = planning.Planner(
             model.world_model, model.params, proposal, value_fn, num_candidates=k, horizon=h,
             action_stats=model.action_stats, normalization=config.data.normalization,
-            codec=model.codec, instruction=INSTRUCTION)
+            codec=model.codec, instruction=INSTRUCTION, score_single=True)
       else:
         planner = SimulatorLookahead(sim, proposal, value_fn, k, h)
       frames, known, _ = sim.start(states, c)
@@ -210,16 +232,33 @@ def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
 
       run = planning.run_closed_loop(
           planner, step_fn, np.stack(frames, 1), steps, jax.random.key(seed + 7),
-          context_actions=np.stack(known, 1) if known else None, execute=execute or h,
-          context=c)
+          context_actions=np.stack(known, 1) if known else None, execute=execute, context=c)
       final = policy_eval.policy_value(coverage[-1])
       rows[k][kind] = {"final_coverage": final.to_dict(), "replans": len(run["plans"]),
                        "per_episode": [float(x) for x in coverage[-1]]}
+      if kind == "world_model":
+        rows[k][kind].update(_exploitability(run, value_fn, c, execute, steps))
   result = {"candidates": rows, "episodes": episodes, "steps": steps, "seed": seed,
-            "table": planning_table(rows)}
+            "execute": execute, "table": planning_table(rows)}
   if out:
     _write(out, "plan", result, result["table"] + "\n")
   return result
+
+
+def _exploitability(run: dict, value_fn: RewardFn, context: int, execute: int,
+                    steps: int) -> dict[str, Any]:
+  """The chosen plans' imagined values beside ``value_fn`` on the simulator's frame after each
+  plan ran (see :func:`plan_in_simulator`)."""
+  imagined, real = [], []
+  for i, plan in enumerate(run["plans"]):
+    after = context - 1 + min((i + 1) * execute, steps)  # the frame the plan's last action made
+    b = len(plan.index)
+    imagined.append(plan.scores[np.arange(b), plan.index])
+    real.append(np.asarray(value_fn(run["frames"][:, after:after + 1], INSTRUCTION)))
+  imagined, real = np.concatenate(imagined), np.concatenate(real)
+  return {"imagined_value": policy_eval.policy_value(imagined).to_dict(),
+          "simulator_value": policy_eval.policy_value(real).to_dict(),
+          "exploitability_gap": policy_eval.policy_value(imagined - real).to_dict()}
 
 
 def planning_table(rows: dict[int, dict]) -> str:
@@ -243,7 +282,9 @@ def summarize(policy_result: dict, plan_result: dict, reward: str = "coverage") 
   policies (NaN correlations become None). ``planning`` (and ``planning_lookahead`` when the
   simulator planned too), keyed by K as a string: final coverage ``mean`` / ``stderr`` over the
   episodes and the paired ``gain_mean`` / ``gain_stderr`` over K = 1 from the same initial states,
-  with the episodes it made ``better`` and ``worse``."""
+  with the episodes it made ``better`` and ``worse``, and for the world model the chosen plans'
+  ``imagined_value``, ``simulator_value`` and ``exploitability_gap`` (with ``*_stderr``) where
+  :func:`plan_in_simulator` measured them."""
   if reward not in policy_result["rewards"]:
     raise ValueError(f"reward {reward!r} was not evaluated; the policy evaluation has "
                      f"{sorted(policy_result['rewards'])}")
@@ -268,6 +309,10 @@ def summarize(policy_result: dict, plan_result: dict, reward: str = "coverage") 
       table[k] = {"mean": value.mean, "stderr": value.stderr, "gain_mean": gain.mean,
                   "gain_stderr": gain.stderr, "better": int((final > base).sum()),
                   "worse": int((final < base).sum())}
+      for name in ("imagined_value", "simulator_value", "exploitability_gap"):
+        if name in rows[k][kind]:
+          table[k][name] = rows[k][kind][name]["mean"]
+          table[k][f"{name}_stderr"] = rows[k][kind][name]["stderr"]
     return table
 
   summary = {
