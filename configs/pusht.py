@@ -11,10 +11,10 @@ frames, because the agent follows a PD controller (a second-order system): one f
 tell its velocity, so its next position would be ambiguous. The loss weighs the pixels within
 3 of an object (agent, T, goal) of the last context frame 21 times (``diffusion.object_weight=20,
 object_dilation=3``): the 3-pixel agent is under 1 % of the frame, and an unweighted MSE is
-lowest for a model that drops it (it did, also with two context frames). Rollouts chain one-frame blocks from two context frames,
-each in 2 DDIM steps with the temporal KV cache; the policies still act in chunks of 4
-(``data.pusht.chunk``), whatever the block length. ``experiments/pusht/RESULTS.md`` has the
-measurements behind each choice.
+lowest for a model that drops it (it did, also with two context frames). Rollouts chain
+one-frame blocks from two context frames, each in 2 DDIM steps with the temporal KV cache; the
+policies still act in chunks of 4 (``data.pusht.chunk``), whatever the block length.
+``experiments/pusht/RESULTS.md`` has the measurements behind each choice.
 
 Profiles (``configs/pusht.py:PROFILE``):
 

@@ -114,3 +114,17 @@ def data_dir(tmp_path_factory):
   gridworld.prepare(str(path), gridworld.GridworldConfig(train_episodes=16, test_episodes=2,
                                                          episode_length=12))
   return path
+
+
+def one_line_error(capsys, argv: list[str], pattern: str) -> str:
+  """Run ``wmjax argv``: it must exit 2 with one line on stderr matching ``pattern``."""
+  import re
+
+  from wmjax import cli
+  capsys.readouterr()
+  code = cli.main(argv)
+  err = capsys.readouterr().err.strip()
+  assert code == 2, (code, err)
+  assert len(err.splitlines()) == 1 and re.search(pattern, err), err
+  return err
+

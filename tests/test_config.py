@@ -11,6 +11,7 @@ import pytest
 
 from wmjax import config as config_lib
 from wmjax.config import ConfigError, apply_overrides, complete_config, load_config
+from wmjax.tasks.gridworld import dataset as gridworld_data
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 GRIDWORLD = str(ROOT / "configs" / "gridworld.py")
@@ -107,6 +108,13 @@ def test_a_config_saved_by_an_older_version_loads_with_defaults():
   # the gridworld's own convention: positions before snap_to_pixels existed were sub-pixel
   assert config.data.gridworld.snap_to_pixels is False
   assert config.model.since_removed == 1
+  # a new config that leaves the key (or the whole section) out gets the documented default
+  fresh = json.loads(load_config(GRIDWORLD).to_json())
+  del fresh["data"]["gridworld"]["snap_to_pixels"]
+  assert complete_config(fresh).data.gridworld.snap_to_pixels is True
+  del fresh["data"]["gridworld"]
+  assert gridworld_data.GridworldConfig.from_dict(
+      complete_config(fresh).data.get("gridworld", {})).snap_to_pixels is True
   # and overrides apply to it like to a config file
   assert apply_overrides(saved, ["sampling.num_steps=4"], strict=False).sampling.num_steps == 4
 

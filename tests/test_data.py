@@ -42,10 +42,12 @@ def grid(tmp_path_factory):
 
 @pytest.mark.integration
 @pytest.mark.parametrize("name", sorted(oxe_fixtures.FEATURES))
-def test_both_read_paths_yield_identical_windows(oxe_data, name):
+def test_both_read_paths_yield_identical_windows(oxe_data, name, caplog):
   tfrecord_dir, array_record_dir = oxe_data[name]
   episodes = ArrayRecordEpisodes(array_record_dir, "train")
-  source = WindowSource(episodes, FRAMES, STRIDE, episodes.spec.resolution)
+  with caplog.at_level("WARNING", logger="wmjax.data.pipeline"):
+    source = WindowSource(episodes, FRAMES, STRIDE, episodes.spec.resolution)
+  assert f"skipped 1 of 3 episodes shorter than the {FRAMES}-frame window" in caplog.text
   streamed = [w for i, episode in enumerate(tfrecord_episodes(tfrecord_dir, "train"))
               for w in episode_windows(episode, FRAMES, STRIDE, episodes.spec.resolution, i)]
   # episodes of 5, 3 and 7 steps: windows start at 0 | (too short, skipped) | 0, 2
@@ -299,3 +301,11 @@ def test_global_batch_is_sharded_over_the_batch_axes():
               r"\(mesh data x fsdp = 2 x 4\): expected a multiple of 8, got 6")
   with pytest.raises(ValueError, match=expected):
     global_batch({"frames": np.zeros((6, 3), np.float32)}, mesh)
+
+
+@pytest.mark.integration
+def test_an_empty_split_says_so_and_how_to_name_episodes(grid):
+  builder_dir, _ = grid
+  with pytest.raises(ValueError, match=r"the split 'test\[90%:\]' of .* is empty \(4 episodes"):
+    ArrayRecordEpisodes(builder_dir, "test[90%:]")
+  assert ArrayRecordEpisodes(builder_dir, "test[-1:]").lengths().shape == (1,)

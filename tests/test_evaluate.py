@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import ROOT, tiny_world_model
+from conftest import ROOT, one_line_error, tiny_world_model
 from wmjax import cli
 from wmjax.codecs import PixelCodec
 from wmjax.config import load_config
@@ -254,10 +254,17 @@ def test_short_protocol_chains_blocks_beyond_the_window(workdir, tmp_path):
   assert short["actions"] == 7 and short["horizon"] == 5
   assert short["trajectories"] == 3  # 14 steps -> 1 window of 8 per episode
   assert len(short["model"]["square_error_px"]["per_frame"]) == 7
+  # without --split: the config's evaluation split (an imported dataset may hold out train[k:])
+  held_out = tmp_path / "held_out"
+  assert cli.main(["evaluate", "--workdir", workdir, "--out", str(held_out), "--protocols",
+                   "short", "--videos", "0", "--config.rollout.short_actions=7",
+                   "--config.data.eval_split='train[:2]'"]) == 0
+  metrics = json.loads((held_out / "metrics.json").read_text())
+  assert metrics["split"] == "train[:2]" and metrics["short"]["trajectories"] == 2
 
 
 @pytest.mark.integration
-def test_rollout_command_applies_the_checkpoint_normalisation(workdir, tmp_path):
+def test_rollout_command_applies_the_checkpoint_normalisation(workdir, tmp_path, capsys):
   model = load_model(workdir)
   config = gridworld.GridworldConfig(num_squares=2, image_size=16, square_size=4)
   centres, raw_actions = gridworld.simulate(config, np.random.default_rng(5))
@@ -279,8 +286,11 @@ def test_rollout_command_applies_the_checkpoint_normalisation(workdir, tmp_path)
   for name in ("rollout.mp4", "rollout.gif", "grid.png"):
     assert (out / name).stat().st_size > 0
   np.save(tmp_path / "wrong.npy", raw_actions[:5, :3])
-  with pytest.raises(ValueError, match="the model takes 4-dim actions, the file has 3"):
-    cli.main(["rollout", "--workdir", workdir, "--frames", str(tmp_path / "start.png"),
+  one_line_error(capsys, ["rollout", "--workdir", workdir, "--frames",
+                          str(tmp_path / "start.png"), "--actions", str(tmp_path / "wrong.npy"),
+                          "--out", str(out)], "the model takes 4-dim actions, the file has 3")
+  with pytest.raises(ValueError, match="the model takes 4-dim actions"):  # --debug: the traceback
+    cli.main(["rollout", "--debug", "--workdir", workdir, "--frames", str(tmp_path / "start.png"),
               "--actions", str(tmp_path / "wrong.npy"), "--out", str(out)])
 
 

@@ -17,7 +17,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
-from conftest import tiny_config
+from conftest import one_line_error, tiny_config
 from wmjax import cli, parallel
 from wmjax.config import ConfigError, load_config
 from wmjax.data.pipeline import WindowSource, training_pipeline
@@ -370,18 +370,19 @@ def test_commands_refuse_unknown_flags_and_out_of_range_inputs(trained, tmp_path
   np.save(tmp_path / "actions.npy", np.zeros((5, 4), np.float32))
   base = ["rollout", "--workdir", str(trained), "--actions", str(tmp_path / "actions.npy"),
           "--out", str(tmp_path / "out")]
-  with pytest.raises(ValueError, match=r"ambiguous.*--frame_range 0,1"):
-    cli.main(base + ["--frames", str(tmp_path / "frames.npy")])
+  one_line_error(capsys, base + ["--frames", str(tmp_path / "frames.npy")],
+                 r"ambiguous.*--frame_range 0,1")
   as_uint8 = inputs.read_frames([str(tmp_path / "frames.npy")], (16, 16, 3), value_range="0,1")
   assert as_uint8.max() == 255 and as_uint8.min() == 0
   with pytest.raises(SystemExit, match=r"--horizon must be between 1 and 7.*got 0"):
     cli.main(base + ["--frames", str(tmp_path / "frames.npy"), "--frame_range", "0,1",
                      "--horizon", "0"])
   np.save(tmp_path / "huge.npy", np.full((5, 4), 1e30, np.float32))
-  with pytest.raises(ValueError, match=r"action dimension 0 takes values in \[1e\+30, 1e\+30\], "
-                     r"but the model was trained on"):
-    cli.main(base[:3] + ["--actions", str(tmp_path / "huge.npy"), "--out", str(tmp_path / "o"),
-                         "--frames", str(tmp_path / "frames.npy"), "--frame_range", "0,1"])
+  one_line_error(capsys, base[:3] + ["--actions", str(tmp_path / "huge.npy"), "--out",
+                                     str(tmp_path / "o"), "--frames", str(tmp_path / "frames.npy"),
+                                     "--frame_range", "0,1"],
+                 r"action dimension 0 takes values in \[1e\+30, 1e\+30\], but the model was "
+                 r"trained on")
   assert not (tmp_path / "out").exists() and not (tmp_path / "o").exists()
 
 
@@ -396,3 +397,21 @@ def test_check_resume_accepts_only_safe_or_named_changes():
                 "optim.learning_rate": "optim.learning_rate"}
   with pytest.raises(ConfigChangeError, match="cannot change the shapes of its parameters"):
     check_resume(3, saved, saved, {"w": (2, 3)}, {"w": (2, 4)}, allow=["model"])
+
+
+@pytest.mark.integration
+def test_bad_inputs_end_in_one_line_with_exit_2(tmp_path, capsys, monkeypatch):
+  """What a newcomer's own data and flags can get wrong: one line on stderr, exit 2; the
+  traceback with WMJAX_DEBUG=1."""
+  missing = str(tmp_path / "nowhere")
+  grid = os.path.join(ROOT, "configs", "gridworld.py")
+  one_line_error(capsys, ["data", "inspect", missing], "nowhere")
+  one_line_error(capsys, ["train", "--config", os.path.join(ROOT, "configs", "rlds.py"),
+                          "--workdir", str(tmp_path / "w"), f"--config.data.builder_dir={missing}"],
+                 "no TFDS dataset at")
+  one_line_error(capsys, ["train", "--config", grid, "--workdir", str(tmp_path / "w2"),
+                          "--config.data.frames=6"], "exceeds model.num_frames")
+  monkeypatch.setenv("WMJAX_DEBUG", "1")
+  with pytest.raises(ValueError, match="exceeds model.num_frames"):
+    cli.main(["train", "--config", grid, "--workdir", str(tmp_path / "w3"),
+              "--config.data.frames=6"])

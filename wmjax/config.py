@@ -349,8 +349,9 @@ def _plain(value: Any) -> Any:
 def _complete(cls: type, values: Any, where: str, strict: bool, skip: Sequence[str] = (),
               construct: bool = False, fill: Mapping[str, Any] | None = None) -> dict:
   """``values`` (a mapping) checked against the dataclass ``cls``, with defaults filled in;
-  ``construct``: through ``cls.from_dict`` (its defaults for keys an older config lacks, its
-  value checks)."""
+  ``construct``: through ``cls.from_dict`` (its value checks), or for a saved config
+  (``strict=False``) ``cls.from_saved`` where the class has one (its defaults for keys an older
+  config lacks)."""
   values = _plain(values)
   if values is None:
     values = {}
@@ -404,8 +405,10 @@ def _complete(cls: type, values: Any, where: str, strict: bool, skip: Sequence[s
     elif field.default is _MISSING:
       raise ConfigError(f"the config has no {name!r} ({_describe(field.hint)})")
   if construct:
+    # a saved config (strict=False) may predate keys whose absence meant something else then
+    make = cls.from_saved if not strict and hasattr(cls, "from_saved") else cls.from_dict
     try:
-      made = cls.from_dict(given)
+      made = make(given)
     except (TypeError, ValueError) as e:
       raise ConfigError(f"{where or 'the config'}: {e}") from e
     given = {k: getattr(made, k) for k in _fields(cls, skip)}

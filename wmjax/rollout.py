@@ -169,7 +169,10 @@ _rollout_jit = jax.jit(_rollout, static_argnums=(0, 6, 7))
 def rollout(world_model: WorldModel, params: Params, context: jax.Array, actions: jax.Array,
             rng: jax.Array, *, horizon: int, context_actions: jax.Array | None = None,
             action_mask: jax.Array | None = None) -> jax.Array:
-  """Roll the model out from ``context [B, c, H, W, C]`` under ``actions [B, N, A]``.
+  """Roll the model out from ``context [B, c, H, W, C]`` (the model's space: pixels in [-1, 1]
+  or latents) under ``actions [B, N, A]``, *normalised* as the model was trained on them
+  (``LoadedModel.action_stats.normalize(raw, config.data.normalization)``;
+  :class:`wmjax.env.WorldModelEnv` takes raw actions and normalises them itself).
 
   ``actions[:, k]`` moves frame ``c-1+k`` to frame ``c+k``. Blocks of ``horizon`` frames are
   generated one after another; when N is not a multiple of ``horizon`` the last block is padded

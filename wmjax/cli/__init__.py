@@ -25,6 +25,7 @@ error. info, compile and the data commands but encode run JAX on the CPU only.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from wmjax.cli import common
@@ -38,16 +39,27 @@ def build_parser() -> argparse.ArgumentParser:
   from wmjax.cli import compile as compile_
   from wmjax.cli import data, evaluate, info, launch, pusht, rollout, train
   parser = argparse.ArgumentParser(prog="wmjax", description=DESCRIPTION)
+  parser.add_argument("--debug", action="store_true",
+                      help="show the traceback of an error instead of one line (anywhere "
+                           "on the command line; also WMJAX_DEBUG=1)")
   sub = parser.add_subparsers(dest="command", required=True)
   for group in (train, evaluate, rollout, pusht, launch, info, compile_, data):
     group.add_parser(sub)
   return parser
 
 
+# What a user's input can cause (a bad path, value, split, key, a missing optional package): one
+# line on stderr and exit 2, as a config error; with --debug or WMJAX_DEBUG=1 the traceback.
+USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, ImportError)
+
+
 def main(argv: list[str] | None = None) -> int:
-  """Run one ``wmjax`` command; its exit status. A config error exits 2 and a run error (a
-  condition the message explains) 1, each with one line on stderr instead of a traceback."""
-  args, extra = build_parser().parse_known_args(argv)
+  """Run one ``wmjax`` command; its exit status. A config error or bad input (:data:`USER_ERRORS`)
+  exits 2 and a run error (a condition the message explains) 1, each with one line on stderr
+  instead of a traceback (``--debug`` or ``WMJAX_DEBUG=1`` shows it)."""
+  argv = list(sys.argv[1:] if argv is None else argv)
+  debug = "--debug" in argv or os.environ.get("WMJAX_DEBUG") == "1"
+  args, extra = build_parser().parse_known_args([a for a in argv if a != "--debug"])
   if not args.passes_on:
     bad = [a for a in extra if not (args.takes_overrides and a.startswith("--config."))]
     bad += [a for a in extra if a.startswith("--config.") and "=" not in a]
@@ -64,3 +76,9 @@ def main(argv: list[str] | None = None) -> int:
   except (ConfigError, RunError) as e:
     print(f"{args.command_parser.prog}: {e}", file=sys.stderr)
     return 2 if isinstance(e, ConfigError) else 1
+  except USER_ERRORS as e:
+    if debug:
+      raise
+    message = " ".join(str(e).split()) or type(e).__name__
+    print(f"{args.command_parser.prog}: {message} (--debug shows the traceback)", file=sys.stderr)
+    return 2

@@ -28,7 +28,9 @@ def add_parser(sub) -> None:
   parser = sub.add_parser("evaluate", help="IRASim / WPE evaluation of a checkpoint",
                           description=run.__doc__)
   parser.add_argument("--workdir", required=True, help=common.WORKDIR_HELP)
-  parser.add_argument("--split", default="test", help="split of the training dataset")
+  parser.add_argument("--split", default=None,
+                      help="split of the training dataset (default: the config's "
+                           "data.eval_split)")
   parser.add_argument("--protocols", default="short,long,sweep",
                       help="comma-separated: short, long (IRASim), sweep (WPE c/h sweep)")
   parser.add_argument("--out", default=None, help="default WORKDIR/eval/SPLIT-stepN")

@@ -19,6 +19,7 @@ and the datasets' extras.
 
 from __future__ import annotations
 
+import logging
 from typing import Any, Sequence
 
 import grain
@@ -29,13 +30,16 @@ from wmjax.data.sources import ArrayRecordEpisodes
 from wmjax.data.stats import ActionStats
 from wmjax.frames import to_model
 
+log = logging.getLogger(__name__)
+
 
 class WindowSource:
   """Random access to every window of ``frames`` frames (stride ``stride``) of an episode source,
   frames fitted to ``resolution`` the way the spec says (``spec.resize``: crop or pad).
 
   Episodes shorter than ``frames`` (and those without the spec's camera, which have length 0)
-  are skipped and counted in ``num_skipped_episodes``.
+  are skipped and counted in ``num_skipped_episodes``; the short ones are logged (the cameraless
+  ones were when the source was read).
   """
 
   def __init__(self, episodes: ArrayRecordEpisodes, frames: int, stride: int,
@@ -45,6 +49,11 @@ class WindowSource:
     starts = [(e, s) for e, n in enumerate(lengths) for s in window_starts(int(n), frames, stride)]
     self.index = np.asarray(starts, np.int64).reshape(-1, 2)
     self.num_skipped_episodes = int((lengths < frames).sum())
+    short = int(((lengths > 0) & (lengths < frames)).sum())
+    if short:
+      log.warning("%s [%s]: skipped %d of %d episodes shorter than the %d-frame window "
+                  "(data.frames)", episodes.builder_dir, episodes.split, short, len(lengths),
+                  frames)
     if len(self.index) == 0:
       raise no_windows_error(f"{episodes.builder_dir} [{episodes.split}]", len(lengths), frames)
 

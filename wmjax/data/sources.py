@@ -127,6 +127,11 @@ class ArrayRecordEpisodes:
     self.builder_dir, self.split = os.fspath(builder_dir), split
     self.spec = resolve(builder, spec)
     self._length = builder.info.splits[split].num_examples
+    if not self._length:
+      total = builder.info.splits[split.split("[")[0]].num_examples
+      raise ValueError(f"the split {split!r} of {builder_dir} is empty ({total} episodes in "
+                       f"{split.split('[')[0]!r}); with few episodes name them, e.g. "
+                       f"data.train_split='train[:-1]' and data.eval_split='train[-1:]'")
     self._flag_keys = [k for k, f in oxe.feature_leaves(builder.info.features).items()
                        if k.startswith("episode_metadata/has_") and np.dtype(f.np_dtype) == bool]
     self._source = None

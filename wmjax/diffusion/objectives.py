@@ -311,9 +311,17 @@ def diffusion_loss(denoise_fn: Callable[[jax.Array, jax.Array], jax.Array], proc
                    ) -> tuple[jax.Array, dict]:
   """Unweighted MSE between the network output and the process's target on the loss frames.
 
-  ``denoise_fn(x_t, levels)`` runs the network on the noisy video ``[B, T, H, W, C]`` at levels
-  ``[B, T]``. Returns ``(loss, aux)`` with the per-frame loss ``[B, T]`` and the levels in ``aux``.
-  """
+  ``denoise_fn(x_t, levels)`` runs the network on the noisy video ``[B, T, H, W, C]`` at the
+  process's levels ``[B, T]`` (integers in ``[-1, T-1]`` for Gaussian diffusion, ``t`` in
+  ``[0, 1]`` for flow matching). The levels are not what the network is shown: convert them with
+  ``process.model_time`` inside ``denoise_fn``, as :mod:`wmjax.train.step` does::
+
+      def denoise_fn(x_t, levels):
+        return network.apply(params, x_t, process.model_time(levels), actions)
+
+  (a network given flow-matching levels directly would see times 1000 times too small and train
+  without a word). Returns ``(loss, aux)`` with the per-frame loss ``[B, T]`` and the levels in
+  ``aux``."""
   levels, mask, noise = training_noise(process, rng, x0.shape, regime, num_context, sampling)
   loss_sum, per_frame = masked_loss_sum(denoise_fn, process, x0, levels, noise, mask)
   return loss_sum / mask.sum(), {"per_frame_loss": per_frame, "levels": levels, "loss_mask": mask}

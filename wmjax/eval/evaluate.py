@@ -31,7 +31,7 @@ def import_function(path: str | None) -> Callable | None:
   return getattr(importlib.import_module(module), name)
 
 
-def evaluate_checkpoint(workdir: str, *, split: str, out: str | None = None,
+def evaluate_checkpoint(workdir: str, *, split: str | None = None, out: str | None = None,
                         protocols: Sequence[str] = ("short", "long", "sweep"),
                         step: int | None = None, params: str = "ema", batch_size: int = 16,
                         max_trajectories: int | None = None, videos: int = 4, num_sets: int = 4,
@@ -39,7 +39,8 @@ def evaluate_checkpoint(workdir: str, *, split: str, out: str | None = None,
                         mask_key: str | None = None, frame_features: str | None = None,
                         clip_features: str | None = None, overrides: Sequence[str] = (),
                         param_dtype: str = "float32") -> tuple[str, dict]:
-  """``wmjax evaluate``: the protocols on ``split`` of the checkpoint's dataset; writes
+  """``wmjax evaluate``: the protocols on ``split`` of the checkpoint's dataset (default: the
+  split its config holds out for evaluation, ``data.eval_split``); writes
   ``metrics.json``, ``report.md`` and ``videos/`` (ground truth | prediction | difference as mp4,
   and a PNG frame grid) to ``out`` (default ``WORKDIR/eval/SPLIT-stepN``). Returns (out, results)."""
   unknown = set(protocols) - {"short", "long", "sweep"}
@@ -49,6 +50,7 @@ def evaluate_checkpoint(workdir: str, *, split: str, out: str | None = None,
                      param_dtype=param_dtype)
   config = model.config
   data = member_configs(config.data)[0]  # a mixture is evaluated on its first dataset
+  split = split or data.eval_split
   dataset = open_dataset(data)
   episodes = dataset.split(split)
   if mask_key:

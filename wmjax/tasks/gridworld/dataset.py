@@ -47,8 +47,14 @@ class GridworldConfig:
 
   @classmethod
   def from_dict(cls, values) -> "GridworldConfig":
-    """From a config section; one written before ``snap_to_pixels`` existed described sub-pixel
-    positions, so a missing key means False (the dataset its model was trained on)."""
+    """From a config section; a key left out takes its default here."""
+    return cls(**dict(values))
+
+  @classmethod
+  def from_saved(cls, values) -> "GridworldConfig":
+    """From the section of a saved config (a workdir's ``config.json``): one written before
+    ``snap_to_pixels`` existed described sub-pixel positions, so there a missing key means False
+    (the dataset its model was trained on)."""
     return cls(**{"snap_to_pixels": False, **dict(values)})
 
   def __post_init__(self):
