@@ -260,8 +260,8 @@ def test_experiment_script_runs_its_stages_resumably(experiment):
   summary = json.loads((root / "summary.json").read_text())
   assert (summary["profile"], summary["train_steps"]) == ("cpu", 2)
   assert summary["minutes"] == pytest.approx(sum(summary["stage_minutes"].values()), abs=0.05)
-  assert set(summary["stage_minutes"]) == {"data", "classifier", "train", "policy", "plan",
-                                           "summary"}
+  # the stages before the summary (its own few milliseconds are added after it is written)
+  assert set(summary["stage_minutes"]) == {"data", "classifier", "train", "policy", "plan"}
   assert set(summary["planning"]) == set(summary["planning_lookahead"]) == {"1", "3"}
   assert set(summary["policies"]) == {"push", "push@0.1", "push@0.2", "push@0.5", "stay"}
   plan = json.loads((root / "plan" / "plan.json").read_text())  # the K runs merged

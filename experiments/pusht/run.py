@@ -201,7 +201,8 @@ class Experiment:
       json.dump(timing, f, indent=2)
 
   def _minutes(self) -> dict:
-    """Wall minutes per stage so far and in all (WORKDIR/timing.json)."""
+    """Wall minutes per stage so far and in all (WORKDIR/timing.json): the stages before the
+    summary, which is timed after it has written them."""
     with open(self.path("timing.json")) as f:
       timing = json.load(f)
     return {"minutes": round(sum(timing.values()) / 60, 2),
