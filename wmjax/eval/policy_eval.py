@@ -53,7 +53,6 @@ def env_episodes(env: WorldModelEnv, policy: Policy, initial_frames, steps: int,
     raise ValueError(f"steps must be >= 1, got {steps}")
   env.reset(initial_frames, instruction, context_actions)
   done, actions = 0, []
-  chunk = np.zeros((env.num_envs, 0, env.action_dim), np.float32)
   for call in itertools.count():
     if done >= steps:
       break

@@ -47,13 +47,14 @@ def pusht_metrics(pred, truth, extras) -> dict[str, np.ndarray]:
   pred_block, pred_agent = _masks(pred)
   true_block, true_agent = _masks(truth)
   penalty = pred_block.shape[-1] / 2
-  out = {}
+  out, found = {}, {}
   for name, p, t in (("agent", pred_agent, true_agent), ("block", pred_block, true_block)):
     p_centre, p_found = _centroid(p)
     t_centre, t_found = _centroid(t)
     error = np.linalg.norm(p_centre - t_centre, axis=-1)
     out[f"{name}_error_px"] = np.where(p_found, error, penalty) * t_found  # nothing to find: 0
-  out["agent_found"] = (_centroid(pred_agent)[1] | ~_centroid(true_agent)[1]).astype(np.float64)
+    found[name] = p_found | ~t_found
+  out["agent_found"] = found["agent"].astype(np.float64)
   out["agent_iou"] = _iou(pred_agent, true_agent)
   out["block_iou"] = _iou(pred_block, true_block)
   return out
