@@ -14,7 +14,7 @@ from wmjax.data import oxe
 from wmjax.data.convert import convert_to_array_record
 from wmjax.data.pipeline import WindowSource, training_pipeline
 from wmjax.data.rlds import episode_windows
-from wmjax.data.sources import (ArrayRecordEpisodes, action_stats, stats_filename,
+from wmjax.data.sources import (ArrayRecordEpisodes, action_stats, episode_split, stats_filename,
                                  tfrecord_episodes)
 from wmjax.data.stats import ActionStats
 from wmjax.parallel import global_batch
@@ -306,6 +306,20 @@ def test_global_batch_is_sharded_over_the_batch_axes():
 @pytest.mark.integration
 def test_an_empty_split_says_so_and_how_to_name_episodes(grid):
   builder_dir, _ = grid
-  with pytest.raises(ValueError, match=r"the split 'test\[90%:\]' of .* is empty \(4 episodes"):
-    ArrayRecordEpisodes(builder_dir, "test[90%:]")
+  with pytest.raises(ValueError, match=r"the split 'test\[4:\]' of .* is empty \(4 episodes"):
+    ArrayRecordEpisodes(builder_dir, "test[4:]")
   assert ArrayRecordEpisodes(builder_dir, "test[-1:]").lengths().shape == (1,)
+  assert len(ArrayRecordEpisodes(builder_dir, "test[90%:]")) == 1  # TFDS would give none
+
+
+@pytest.mark.unit
+def test_percent_splits_hold_out_an_episode_of_two_or_more():
+  assert [episode_split(s, 3) for s in ("train[:90%]", "train[90%:]")] == ["train[:2]", "train[2:]"]
+  assert [episode_split(s, 2) for s in ("train[:95%]", "train[95%:]")] == ["train[:1]", "train[1:]"]
+  # where TFDS rounding keeps both sides non-empty, its boundary is kept
+  assert [episode_split(s, 100) for s in ("train[:95%]", "train[95%:]")] == ["train[:95]",
+                                                                             "train[95:]"]
+  assert episode_split("train[-10%:]", 3) == "train[2:]"
+  assert episode_split("train[90%:]", 1) == "train[1:]"  # one episode cannot be shared: empty
+  for unchanged in ("test", "train[7:8]", "train[:-1]"):
+    assert episode_split(unchanged, 3) == unchanged

@@ -278,3 +278,19 @@ def test_experiment_script_runs_its_stages_resumably(experiment):
       k: v for k, v in summary.items() if k not in timing}
   with pytest.raises(SystemExit):
     run(args + ["--config.train.num_stepz=3"])
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_h100_profile_trains_one_step(experiment, tmp_path):
+  """The h100 profile (bfloat16, the attention the platform offers) at tiny widths, one step on
+  the experiment's data."""
+  data = [a for a in EXPERIMENT_TINY if a.startswith(("--config.data.pusht", "--config.frame"))]
+  tiny = {"data.data_dir": os.path.join(experiment[1][1], "data"), "data.num_workers": 0,
+          "model.depth": 2, "model.hidden_size": 32, "model.num_heads": 2, "batch_size": 8,
+          "train.num_steps": 1, "train.eval_every": 0}
+  assert cli.main(["train", "--config", str(ROOT / "configs" / "pusht.py:h100"), "--workdir",
+                   str(tmp_path)] + data + [f"--config.{k}={v!r}" for k, v in tiny.items()]) == 0
+  saved = json.loads((tmp_path / "config.json").read_text())
+  assert (saved["name"], saved["model"]["dtype"]) == ("pusht-h100", "bfloat16")
+  assert json.loads((tmp_path / "metrics.json").read_text()) == {"step": 1}

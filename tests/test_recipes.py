@@ -2,6 +2,8 @@
 and one rollout each on the Open-X fixture datasets, with a tiny model and a tiny random-weight
 diffusers VAE; pre-encoded latents (`wmjax data encode`) train the same way."""
 
+import glob
+import importlib.util
 import json
 import os
 
@@ -67,7 +69,20 @@ def _config(recipe, assets, **extra):
   return load_config(str(ROOT / "configs" / recipe), [f"{k}={v!r}" for k, v in values.items()])
 
 
-@pytest.mark.parametrize("recipe", ["rt1.py", "bridge.py", "language_table.py", "wpe.py"])
+# Every shipped config file and profile, and the test that trains it one step on tiny data of its
+# kind (test_every_shipped_config_is_trained_by_a_test keeps this complete).
+RECIPES = ("rt1.py", "bridge.py", "language_table.py", "wpe.py")
+TRAINED_ELSEWHERE = {
+    "irasim.py": "the model of rt1.py, bridge.py and language_table.py (its recipes)",
+    "wpe_600m.py": "the model of wpe.py",
+    "gridworld.py": "test_train_loop.py, test_overfit.py and the quickstart",
+    "pusht.py:cpu": "test_pusht.py (the experiment fixture trains it)",
+    "pusht.py:h100": "test_pusht.py::test_h100_profile_trains_one_step",
+    "rlds.py": "test_recipes.py::test_rlds_config_trains_on_three_episodes_with_its_default_splits",
+}
+
+
+@pytest.mark.parametrize("recipe", RECIPES)
 def test_recipe_trains_one_step_and_rolls_out(recipe, assets, tmp_path):
   config = _config(recipe, assets)
   _, result = train(config, str(tmp_path))
@@ -122,3 +137,54 @@ def test_pre_encoded_latents_train_like_frames(assets, tmp_path, capsys):
   one_line_error(capsys, ["data", "encode", "--config", str(ROOT / "configs" / "bridge.py"),
                           "--out", str(out)] + overrides, "never overwritten")
   assert not os.path.exists(str(out) + ".incomplete")
+
+
+def test_rlds_config_trains_on_three_episodes_with_its_default_splits(assets, tmp_path, capsys):
+  """configs/rlds.py as the README's own-data command runs it: 2-frame windows of its own, and
+  its default splits (train[:90%] / train[90%:]) hold out one of three episodes."""
+  builder = assets[0]["fractal20220817_data"]
+  overrides = [f"--config.{k}={v!r}" for k, v in {
+      "data.builder_dir": builder, "data.dataset": "fractal20220817_data",
+      "model.action_dim": 7, "data.resolution": (16, 16), "frame_shape": (16, 16, 3),
+      "model.depth": 2, "model.hidden_size": 32, "model.num_heads": 2, "batch_size": 8,
+      "train.num_steps": 1, "train.eval_every": 1, "train.eval_windows": 2}.items()]
+  assert cli.main(["train", "--config", str(ROOT / "configs" / "rlds.py"), "--workdir",
+                   str(tmp_path)] + overrides) == 0
+  result = json.loads((tmp_path / "metrics.json").read_text())
+  assert result["step"] == 1 and np.isfinite(result["val_loss"])
+  assert len(ArrayRecordEpisodes(builder, "train[90%:]")) == 1
+  assert len(ArrayRecordEpisodes(builder, "train[:90%]")) == 2
+
+
+def test_every_shipped_config_is_trained_by_a_test():
+  files = {os.path.basename(p) for p in glob.glob(str(ROOT / "configs" / "*.py"))}
+  covered = set(RECIPES) | set(TRAINED_ELSEWHERE)
+  covered_files = {c.split(":")[0] for c in covered}
+  assert files <= covered_files, f"configs no test trains: {sorted(files - covered_files)}"
+  spec = importlib.util.spec_from_file_location("pusht_config", ROOT / "configs" / "pusht.py")
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  profiles = {f"pusht.py:{p}" for p in module.PROFILES}
+  assert profiles <= covered, f"profiles no test trains: {sorted(profiles - covered)}"
+
+
+def test_own_data_mistakes_end_in_one_line(assets, tmp_path, capsys):
+  """Each mistake a newcomer's own data or flags can make: one line on stderr, exit 2, before
+  anything compiles."""
+  builder = assets[0]["fractal20220817_data"]
+  train = ["train", "--config", str(ROOT / "configs" / "rlds.py"), "--workdir", str(tmp_path / "w"),
+           f"--config.data.builder_dir={builder}", "--config.data.dataset='fractal20220817_data'",
+           "--config.model.action_dim=7"]
+  one_line_error(capsys, train + ["--config.data.image_key='wrist'"],
+                 r"match no known layout.*'wrist'")
+  one_line_error(capsys, train + ["--config.data.train_split='valid'"],
+                 r"has no split 'valid'; splits: \['train'\]")
+  one_line_error(capsys, train + ["--config.data.spec.action_keys=('action/nope',)"],
+                 r"match no known layout.*'action/nope'")
+  one_line_error(capsys, train + ["--config.data.frames=9"], "exceeds model.num_frames")
+  one_line_error(capsys, ["data", "stats", builder, "--split", "valid"], "has no split 'valid'")
+  one_line_error(capsys, ["data", "convert", builder, str(tmp_path / "out")],
+                 "is stored as array_record, not tfrecord")
+  one_line_error(capsys, ["train", "--config", str(ROOT / "configs" / "wpe_600m.py"),
+                          "--workdir", str(tmp_path / "m")], "names no dataset: a model-only config")
+  assert not list(tmp_path.glob("w/checkpoints/*"))  # nothing was trained

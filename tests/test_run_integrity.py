@@ -415,3 +415,36 @@ def test_bad_inputs_end_in_one_line_with_exit_2(tmp_path, capsys, monkeypatch):
   with pytest.raises(ValueError, match="exceeds model.num_frames"):
     cli.main(["train", "--config", grid, "--workdir", str(tmp_path / "w3"),
               "--config.data.frames=6"])
+
+
+_TPU_PROBE = """
+import sys
+from jax._src import xla_bridge
+started = []
+real = xla_bridge.make_tpu_client
+xla_bridge.make_tpu_client = lambda *a, **k: started.append(1) or real(*a, **k)
+if sys.argv[1] == "skip":
+  from wmjax.cli import common
+  common.skip_absent_tpu()
+import jax
+jax.devices()
+print("started" if started else "not started")
+"""
+
+
+@pytest.mark.integration
+def test_a_machine_without_tpu_chips_starts_no_tpu_client():
+  """libtpu (the test extra) makes JAX start a TPU client everywhere, and libtpu then prints
+  INVALID_ARGUMENT lines on a CPU host; the CLI leaves the TPU out when the machine has none."""
+  pytest.importorskip("libtpu")
+  from jax._src import hardware_utils
+  if hardware_utils.num_available_tpu_chips_and_device_id()[0]:
+    pytest.skip("this machine has TPU chips")
+  env = {k: v for k, v in os.environ.items() if k not in ("JAX_PLATFORMS", "JAX_FORCE_TPU_INIT")}
+  probe = [sys.executable, "-c", _TPU_PROBE]
+  run = lambda mode: subprocess.run(probe + [mode], env=env, capture_output=True, text=True,  # noqa: E731
+                                    check=True)
+  assert run("plain").stdout.strip() == "started"  # what the CLI prevents
+  skipped = run("skip")
+  assert skipped.stdout.strip() == "not started"
+  assert "INVALID_ARGUMENT" not in skipped.stderr and "libtpu" not in skipped.stderr

@@ -246,6 +246,11 @@ def specs_from_config(data: Mapping[str, Any]) -> tuple[DatasetSpec, ...]:
     candidates = (DatasetSpec.from_dict({**given, "name": given.get("name") or name}),)
   elif name in SPECS:
     candidates = SPECS[name]
+  elif not name:
+    raise ValueError("config.data names no dataset: a model-only config (configs/irasim.py "
+                     "without a dataset, configs/wpe_600m.py) trains through a recipe that adds "
+                     "the data (configs/rt1.py, bridge.py, language_table.py, wpe.py, rlds.py), "
+                     "or set config.data.dataset and config.data.builder_dir")
   else:
     raise ValueError(f"unknown dataset {name!r} and no config.data.spec: known datasets are "
                      f"{sorted(SPECS)}; for another RLDS dataset set config.data.spec (run "

@@ -87,9 +87,40 @@ def write_cached_json(builder_dir: str, filename: str, data: Any) -> str:
   raise OSError(f"cannot write {filename} beside {builder_dir} nor in ~/.cache/wmjax")
 
 
-def _check_split(builder, builder_dir: str, split: str) -> None:
-  if split.split("[")[0] not in builder.info.splits:  # slices like "train[95%:]" are fine
+_SLICE = re.compile(r"^([\w-]+)\[(-?\d+%?)?:(-?\d+%?)?\]$")
+
+
+def episode_split(split: str, num_episodes: int) -> str:
+  """``split`` with its percent boundaries as episode indices, rounded as TFDS rounds them but
+  kept off the ends: of two or more episodes, ``train[:90%]`` keeps at least one and
+  ``train[90%:]`` holds at least one out (TFDS gives 3 episodes' ``train[90%:]`` none). Other
+  splits are returned as they are.
+
+  >>> episode_split("train[90%:]", 3), episode_split("train[:90%]", 3)
+  ('train[2:]', 'train[:2]')
+  """
+  match = _SLICE.match(split)
+  if not match or "%" not in split:
+    return split
+
+  def index(bound: str | None) -> str:
+    if bound is None or not bound.endswith("%"):
+      return bound or ""
+    percent = int(bound[:-1]) % 100 if int(bound[:-1]) < 0 else int(bound[:-1])
+    if percent <= 0 or percent >= 100 or num_episodes < 2:
+      return str(round(num_episodes * min(max(percent, 0), 100) / 100))
+    return str(min(max(round(num_episodes * percent / 100), 1), num_episodes - 1))
+
+  base, start, stop = match.groups()
+  return f"{base}[{index(start)}:{index(stop)}]"
+
+
+def _check_split(builder, builder_dir: str, split: str) -> str:
+  """The split as TFDS is asked for it (:func:`episode_split`), or an error naming the splits."""
+  base = split.split("[")[0]
+  if base not in builder.info.splits:  # slices like "train[95%:]" are fine
     raise ValueError(f"{builder_dir} has no split {split!r}; splits: {list(builder.info.splits)}")
+  return episode_split(split, builder.info.splits[base].num_examples)
 
 
 def _missing_camera(spec: oxe.DatasetSpec, flags: Mapping[str, Any], where: str) -> bool:
@@ -123,10 +154,10 @@ class ArrayRecordEpisodes:
     if builder.info.file_format.value != "array_record":
       raise ValueError(f"{builder_dir} is stored as {builder.info.file_format.value}; random access "
                        f"needs ArrayRecord: run `wmjax data convert {builder_dir} OUT_DIR`")
-    _check_split(builder, builder_dir, split)
+    self._tfds_split = _check_split(builder, builder_dir, split)
     self.builder_dir, self.split = os.fspath(builder_dir), split
     self.spec = resolve(builder, spec)
-    self._length = builder.info.splits[split].num_examples
+    self._length = builder.info.splits[self._tfds_split].num_examples
     if not self._length:
       total = builder.info.splits[split.split("[")[0]].num_examples
       raise ValueError(f"the split {split!r} of {builder_dir} is empty ({total} episodes in "
@@ -146,7 +177,7 @@ class ArrayRecordEpisodes:
   def _record(self, index: int):
     if self._source is None:
       builder = open_builder(self.builder_dir)
-      self._source = builder.as_data_source(split=self.split,
+      self._source = builder.as_data_source(split=self._tfds_split,
                                             decoders=skip_image_decoding(self.spec))
     return self._source[index]
 
@@ -201,13 +232,13 @@ def tfrecord_episodes(builder_dir: str, split: str, spec: SpecArg = None,
   if builder.info.file_format.value != "tfrecord":
     raise ValueError(f"{builder_dir} is stored as {builder.info.file_format.value}; tf.data reads "
                      f"TFRecord only: read it with ArrayRecordEpisodes (or read_episodes)")
-  _check_split(builder, builder_dir, split)
+  tfds_split = _check_split(builder, builder_dir, split)
   try:
     import tensorflow as tf
   except ImportError as e:
     raise ImportError("the tf.data path needs TensorFlow: pip install 'wmjax[tf]'") from e
   spec = resolve(builder, spec)
-  ds = builder.as_dataset(split=split, decoders=skip_image_decoding(spec),
+  ds = builder.as_dataset(split=tfds_split, decoders=skip_image_decoding(spec),
                           shuffle_files=shuffle_files)
 
   def batch_steps(episode):

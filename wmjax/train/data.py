@@ -35,7 +35,7 @@ class Member:
   spec: oxe.DatasetSpec
   stats: ActionStats
   train: WindowSource
-  eval: WindowSource
+  eval: WindowSource | None  # None when the run does not evaluate (``train.eval_every=0``)
   weight: float
 
 
@@ -54,7 +54,8 @@ class TrainData:
     return out
 
 
-def _open_latents(data: ml_collections.ConfigDict, config: ml_collections.ConfigDict):
+def _open_latents(data: ml_collections.ConfigDict, config: ml_collections.ConfigDict,
+                  evaluation: bool):
   directory = os.path.expanduser(data.latents_dir)
   train_episodes = LatentEpisodes(directory, data.train_split)
   meta = train_episodes.metadata
@@ -64,16 +65,16 @@ def _open_latents(data: ml_collections.ConfigDict, config: ml_collections.Config
   if tuple(meta["latent_shape"]) != tuple(config.frame_shape):
     raise ValueError(f"{directory} holds latents of shape {tuple(meta['latent_shape'])}, but "
                      f"frame_shape is {tuple(config.frame_shape)}")
-  eval_episodes = LatentEpisodes(directory, data.eval_split)
+  eval_episodes = LatentEpisodes(directory, data.eval_split) if evaluation else None
   return (train_episodes, eval_episodes, ActionStats.from_dict(meta["action_stats"]),
           tuple(meta["resolution"]))
 
 
 def _open_frames(data: ml_collections.ConfigDict, config: ml_collections.ConfigDict,
-                 codec: Codec):
+                 codec: Codec, evaluation: bool):
   dataset = open_dataset(data)
   train_episodes = dataset.split(data.train_split)
-  eval_episodes = dataset.split(data.eval_split)
+  eval_episodes = dataset.split(data.eval_split) if evaluation else None
   resolution = dataset.resolution(train_episodes.spec)
   if tuple(config.frame_shape) != codec.latent_shape(resolution + (3,)):
     raise ValueError(f"frame_shape {tuple(config.frame_shape)} does not match what the codec "
@@ -83,9 +84,10 @@ def _open_frames(data: ml_collections.ConfigDict, config: ml_collections.ConfigD
   return train_episodes, eval_episodes, dataset.train_stats(), resolution
 
 
-def build_data(config: ml_collections.ConfigDict) -> TrainData:
+def build_data(config: ml_collections.ConfigDict, evaluation: bool = True) -> TrainData:
   """Window sources and action statistics of every member, checked against the model before
-  anything compiles."""
+  anything compiles; without ``evaluation`` the evaluation splits are not opened (a run with
+  ``train.eval_every=0`` needs none)."""
   codec = make_codec(config.codec)
   frames = config.data.frames
   if frames > config.model.num_frames:
@@ -95,7 +97,8 @@ def build_data(config: ml_collections.ConfigDict) -> TrainData:
     latents = bool(data.latents_dir)
     kinds.add(latents)
     train_episodes, eval_episodes, stats, resolution = (
-        _open_latents(data, config) if latents else _open_frames(data, config, codec))
+        _open_latents(data, config, evaluation) if latents
+        else _open_frames(data, config, codec, evaluation))
     spec = train_episodes.spec
     # a mixture zero-pads smaller action spaces; a single dataset must match exactly
     mixture = bool(config.data.mixture)
@@ -105,7 +108,8 @@ def build_data(config: ml_collections.ConfigDict) -> TrainData:
                        f"model.action_dim={config.model.action_dim}")
     members.append(Member(spec, stats,
                           WindowSource(train_episodes, frames, data.train_stride, resolution),
-                          WindowSource(eval_episodes, frames, data.eval_stride, resolution),
+                          WindowSource(eval_episodes, frames, data.eval_stride, resolution)
+                          if evaluation else None,
                           float(data.get("weight", 1.0))))  # a mixture member's
   if len(kinds) > 1:
     raise ValueError("a mixture must be all pre-encoded latents or all frames")

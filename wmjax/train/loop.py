@@ -267,7 +267,7 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
   from tqdm import tqdm
 
   is_chief = jax.process_index() == 0
-  data = build_data(config)
+  data = build_data(config, evaluation=config.train.eval_every > 0)
   mesh = parallel.make_mesh(config.mesh)
   parallel.check_batch_divisible(config.batch_size, mesh, processes=jax.process_count(),
                                  what="global batch_size")
