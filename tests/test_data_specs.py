@@ -89,6 +89,9 @@ def test_camera_choice_skips_episodes_without_it(bridge, caplog):
   assert distance(3) < 3 < distance(0)
   streamed = list(stream_windows(tfrecord_episodes(tfrecord_dir, "train", specs), 4, 2, None))
   assert len(streamed) == len(source) == 2
+  # both paths number an episode by its place in the split, the skipped episode 0 counted
+  assert [int(w["episode"]) for w in streamed] == [int(source[i]["episode"]) for i in range(2)]
+  assert [int(w["episode"]) for w in streamed] == [2, 2]
   np.testing.assert_array_equal(streamed[0]["frames"], window["frames"])
   # camera 0 exists everywhere: nothing is skipped
   assert ArrayRecordEpisodes(array_record_dir, "train", "bridge_dataset").lengths().tolist() == [5, 3, 7]

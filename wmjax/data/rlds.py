@@ -37,13 +37,14 @@ class Episode:
   instruction: str
   extras: dict[str, np.ndarray]
   first_step: int = 0
+  index: int = -1  # its place in the split, episodes skipped for a missing camera counted
 
   def __len__(self) -> int:
     return len(self.images)
 
   @classmethod
-  def from_steps(cls, spec: DatasetSpec, steps: Mapping[str, Any], first_step: int = 0
-                 ) -> "Episode":
+  def from_steps(cls, spec: DatasetSpec, steps: Mapping[str, Any], first_step: int = 0,
+                 index: int = -1) -> "Episode":
     """From batched RLDS steps (leading axis L) with the image features left encoded; with
     ``spec.frame_step = k`` the steps are raw steps from ``k * first_step`` on and every k-th
     is kept."""
@@ -61,7 +62,7 @@ class Episode:
         instruction=instruction,
         extras={key.split("/")[-1]: np.asarray(get_path(steps, key))[::k]
                 for key in spec.extra_keys},
-        first_step=first_step)
+        first_step=first_step, index=index)
 
 
 def stack_steps(steps: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -163,11 +164,14 @@ def episode_windows(episode: Episode, frames: int, stride: int, resolution,
 
 def stream_windows(episodes: Iterable[Episode], frames: int, stride: int, resolution,
                    resize: str = "crop", where: str = "the dataset") -> Iterator[dict[str, Any]]:
-  """Every window of a stream of episodes (the tf.data path), in order; ``episode`` numbers
-  the episodes as they come. Raises :func:`no_windows_error` when none is long enough."""
+  """Every window of a stream of episodes (the tf.data path), in order; ``episode`` is the
+  episode's place in its split (as the ArrayRecord path numbers it), or its place in the stream
+  where the episode does not know it. Raises :func:`no_windows_error` when none is long
+  enough."""
   count = made = 0
-  for index, episode in enumerate(episodes):
+  for position, episode in enumerate(episodes):
     count += 1
+    index = episode.index if episode.index >= 0 else position
     for window in episode_windows(episode, frames, stride, resolution, index, resize):
       made += 1
       yield window

@@ -187,7 +187,7 @@ class ArrayRecordEpisodes:
     k = self.spec.frame_step
     stop = len(steps) if stop is None else min(stop * k, len(steps))
     return Episode.from_steps(self.spec, stack_steps([steps[i] for i in range(start * k, stop)]),
-                              start)
+                              start, index)
 
   def _index(self) -> dict:
     """Raw lengths and ``episode_metadata/has_*`` flags of every episode, read once and cached
@@ -253,7 +253,7 @@ def tfrecord_episodes(builder_dir: str, split: str, spec: SpecArg = None,
     if _missing_camera(spec, flags, f"{where} episode {index}"):
       skipped += 1
       continue
-    yield Episode.from_steps(spec, steps)
+    yield Episode.from_steps(spec, steps, index=index)
   _log_skipped(where, spec, skipped, total)
 
 
