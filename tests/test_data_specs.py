@@ -20,8 +20,9 @@ from wmjax.data.convert import convert_to_array_record
 from wmjax.data.lerobot import import_lerobot
 from wmjax.data.pipeline import WindowSource
 from wmjax.data.rlds import stream_windows
-from wmjax.data.sources import (ArrayRecordEpisodes, action_stats, read_episodes,
+from wmjax.data.sources import (ArrayRecordEpisodes, action_stats, open_builder, read_episodes,
                                 tfrecord_episodes)
+from wmjax.data import videoio
 from wmjax.data.videoio import read_video
 from wmjax.eval.video import write_video
 from wmjax.tasks.gridworld import dataset as gridworld
@@ -203,7 +204,6 @@ def test_inspect_prints_features_and_a_spec_that_reads(fractal):
   assert "observation/natural_language_instruction" in out and "Image[256, 320, 3] uint8" in out
   assert "train (3 episodes)" in out and "--config.data.spec.action_keys=" in out
   from wmjax.data.describe import suggest_spec
-  from wmjax.data.sources import open_builder
   spec = suggest_spec("fractal", open_builder(array_record_dir).info.features)
   assert spec.action_keys[-1] == "action/gripper_closedness_action"
   assert (spec.action_dim, spec.gripper_dim) == (10, 9)  # base 2 + 1, rotation 3, world 3, gripper
@@ -214,8 +214,8 @@ def test_inspect_prints_features_and_a_spec_that_reads(fractal):
 
 # ----------------------------------------------------------------------------- LeRobot
 
-FPS, SIZE, LENGTHS = 10, 16, (5, 6, 4)
-TASKS = ("stack the cups", "open the drawer", "stack the cups")
+FPS, SIZE, LENGTHS = 10, 16, (5, 6, 4, 3)
+TASKS = ("stack the cups", "open the drawer", "stack the cups", "wipe the table")
 
 
 def _lerobot_frames(episode, length, camera):
@@ -228,6 +228,7 @@ def _lerobot_frames(episode, length, camera):
 def _lerobot_rows(episode, length, start_index):
   rng = np.random.default_rng(episode)
   return {"action": rng.normal(size=(length, 2)).astype(np.float32).tolist(),
+          "actions.ee": rng.normal(size=(length, 4)).astype(np.float32).tolist(),
           "observation.state": rng.normal(size=(length, 3)).astype(np.float32).tolist(),
           "timestamp": (np.arange(length) / FPS).tolist(), "frame_index": list(range(length)),
           "episode_index": [episode] * length,
@@ -236,9 +237,11 @@ def _lerobot_rows(episode, length, start_index):
 
 
 def write_lerobot(root, version):
-  """A LeRobot dataset of 3 episodes, 2 video cameras, 2-dim actions, in layout v2.1 or v3.0."""
+  """A LeRobot dataset of 4 episodes, 2 video cameras, 2-dim actions (and 4-dim ``actions.ee``),
+  in layout v2.1 or v3.0."""
   cameras = ("observation.images.top", "observation.images.wrist")
   features = {"action": {"dtype": "float32", "shape": [2]},
+              "actions.ee": {"dtype": "float32", "shape": [4]},
               "observation.state": {"dtype": "float32", "shape": [3]},
               **{c: {"dtype": "video", "shape": [SIZE, SIZE, 3],
                      "names": ["height", "width", "channels"]} for c in cameras}}
@@ -273,9 +276,9 @@ def write_lerobot(root, version):
       os.makedirs(video.parent)
       write_video(str(video), np.concatenate([_lerobot_frames(e, n, c) for e, n in
                                               enumerate(LENGTHS)]), fps=FPS, scale=1)
-      episodes[f"videos/{camera}/chunk_index"] = [0] * 3
-      episodes[f"videos/{camera}/file_index"] = [0] * 3
-      episodes[f"videos/{camera}/from_timestamp"] = [float(s) / FPS for s in starts[:3]]
+      episodes[f"videos/{camera}/chunk_index"] = [0] * len(LENGTHS)
+      episodes[f"videos/{camera}/file_index"] = [0] * len(LENGTHS)
+      episodes[f"videos/{camera}/from_timestamp"] = [float(s) / FPS for s in starts[:-1]]
     for e, n in enumerate(LENGTHS):
       episodes["episode_index"].append(e)
       episodes["tasks"].append([TASKS[e]])
@@ -283,16 +286,21 @@ def write_lerobot(root, version):
     path = root / "meta" / "episodes" / "chunk-000" / "file-000.parquet"
     os.makedirs(path.parent)
     pq.write_table(pa.table(episodes), path)
-  info.update(features=features, splits={"train": "0:3"}, total_episodes=3)
+  info.update(features=features, splits={"train": f"0:{len(LENGTHS)}"},
+              total_episodes=len(LENGTHS))
   with open(root / "meta" / "info.json", "w") as f:
     json.dump(info, f)
   return cameras
 
 
 @pytest.mark.parametrize("version", ["v2", "v3"])
-def test_lerobot_import(tmp_path, version):
+def test_lerobot_import(tmp_path, version, monkeypatch):
   src = tmp_path / "src"
   cameras = write_lerobot(src, version)
+  opened = []
+  real_open = videoio.VideoStream._open
+  monkeypatch.setattr(videoio.VideoStream, "_open",
+                      lambda self: opened.append(self.path) or real_open(self))
   out = _cli("data", "import", "lerobot", str(src), str(tmp_path / "out"), "--camera",
              cameras[1]).strip().splitlines()[-1]
   episodes = ArrayRecordEpisodes(out, "train")  # the built-in `lerobot` spec
@@ -317,7 +325,21 @@ def test_lerobot_import(tmp_path, version):
   # and what a training run reads: windows of a config split, with statistics of that split
   stats = action_stats(out, "train[:2]")
   assert stats.count == LENGTHS[0] - 1 + LENGTHS[1] - 1
+  # the chosen camera is stored once, as observation/image; episodes keep the source's order
+  observation = open_builder(out).info.features["steps"]["observation"]
+  assert sorted(observation.keys()) == ["image", "state", "top"]
+  assert [int(episodes._record(e)["episode_metadata"]["episode_id"]) for e in range(4)] == [0, 1, 2, 3]
   with pytest.raises(ValueError, match="already exists"):
     import_lerobot(str(src), out)
+  other = import_lerobot(str(src), str(tmp_path / "ee"), action_key="actions.ee")
+  # every video file is decoded once (v3: one file per camera holds all 4 episodes)
+  assert len(opened) == len(set(opened)) == (8 if version == "v2" else 2)
+  ee = ArrayRecordEpisodes(other, "train")
+  assert ee.spec.action_dim == 4
+  np.testing.assert_array_equal(ee.episode(3).actions, np.asarray(_lerobot_rows(3, 3, 0)["actions.ee"],
+                                                                  np.float32))
+  with pytest.raises(ValueError, match=r"the action 'act' \(--action_key names another; float "
+                                       r"features: \['action', 'actions.ee', 'observation.state'\]"):
+    import_lerobot(str(src), str(tmp_path / "x"), action_key="act")
   with pytest.raises(ValueError, match="no camera 'observation.images.side'"):
     import_lerobot(str(src), str(tmp_path / "other"), camera="observation.images.side")

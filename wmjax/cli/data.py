@@ -64,7 +64,7 @@ def import_lerobot(args, extra) -> int:
   configs/rlds.py and --config.data.builder_dir=OUT."""
   del extra
   from wmjax.data.lerobot import import_lerobot as run_import
-  print(run_import(args.src, args.out, camera=args.camera))
+  print(run_import(args.src, args.out, camera=args.camera, action_key=args.action_key))
   return 0
 
 
@@ -144,6 +144,8 @@ def add_parser(sub) -> None:
   lerobot.add_argument("out", help="output builder directory (must not exist)")
   lerobot.add_argument("--camera", default=None,
                        help="camera feature stored as observation/image, e.g. "
-                            "observation.images.top (default: the first); every camera is also "
-                            "kept as observation/<name>")
+                            "observation.images.top (default: the first); every other camera "
+                            "is kept as observation/<name>")
+  lerobot.add_argument("--action_key", default="action",
+                       help="the feature stored as the action (default: action)")
   common.register(lerobot, import_lerobot, host_only=True)

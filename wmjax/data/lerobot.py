@@ -9,11 +9,13 @@ row's ``action`` becomes the step's action: LeRobot records the action taken at 
 leads to the next one, the RLDS alignment. Cameras are ``video`` (or ``image``) features.
 
 The output is a TFDS builder directory named ``lerobot`` (built-in spec ``lerobot``):
-``steps/observation/image`` (PNG) is the chosen camera (default the first), every camera is also
+``steps/observation/image`` (PNG) is the chosen camera (default the first), every other camera
 ``steps/observation/<name>`` (``observation.images.wrist`` -> ``wrist``, see :func:`camera_name`),
 ``steps/observation/state`` the ``observation.state`` where present, ``steps/action`` float32
-``[A]``, ``steps/language_instruction`` the episode's task(s), ``is_first`` / ``is_last`` /
-``is_terminal``; splits as ``info.json`` lists them (``"train": "0:50"``).
+``[A]`` (the ``action`` feature, or the one named), ``steps/language_instruction`` the episode's
+task(s), ``is_first`` / ``is_last`` / ``is_terminal``; splits as ``info.json`` lists them
+(``"train": "0:50"``), episodes in the source's order. Each video file is decoded once, front to
+back (:class:`wmjax.data.videoio.VideoStream`), holding one episode's frames per camera.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ def _png(frame: np.ndarray) -> bytes:
 
 def camera_name(key: str) -> str:
   """``observation.images.wrist`` -> ``wrist`` (a valid feature name; ``observation.image`` ->
-  ``image_camera``, as ``image`` is the chosen camera)."""
+  ``image_camera``, as ``image`` is the chosen camera's place)."""
   name = re.sub(r"\W", "_", key.removeprefix("observation.images.").removeprefix("observation."))
   return "image_camera" if name == "image" else name
 
@@ -48,8 +50,8 @@ def camera_name(key: str) -> str:
 class LeRobotDataset:
   """The parts of a local LeRobot dataset the importer needs (see the module doc)."""
 
-  def __init__(self, src: str):
-    self.src = os.fspath(src)
+  def __init__(self, src: str, action_key: str = "action"):
+    self.src, self.action_key = os.fspath(src), action_key
     path = os.path.join(self.src, "meta", "info.json")
     if not os.path.isfile(path):
       raise ValueError(f"{src} is not a LeRobot dataset: no meta/info.json")
@@ -62,9 +64,11 @@ class LeRobotDataset:
                        f"v3.x)")
     features = self.info.get("features", {})
     self.cameras = [k for k, v in features.items() if v.get("dtype") in ("video", "image")]
-    if "action" not in features or not self.cameras:
-      raise ValueError(f"{src}: info.json features need 'action' and at least one camera (dtype "
-                       f"video or image); found {sorted(features)}")
+    if action_key not in features or not self.cameras:
+      vectors = sorted(k for k, v in features.items() if v.get("dtype", "").startswith("float"))
+      raise ValueError(f"{src}: info.json features need the action {action_key!r} (--action_key "
+                       f"names another; float features: {vectors}) and at least one camera "
+                       f"(dtype video or image); found {sorted(features)}")
     self.fps = float(self.info["fps"])
     self.episodes = self._episodes()
     self._rows = self._read_rows()
@@ -121,43 +125,41 @@ class LeRobotDataset:
     return (os.path.join(self.src, path),
             int(round(float(meta[f"videos/{key}/from_timestamp"]) * self.fps)))
 
-  def camera_frames(self, key: str, episode: int, videos: dict[str, np.ndarray]) -> np.ndarray:
-    """uint8 ``[L, H, W, 3]`` of camera ``key`` in ``episode``; ``videos`` caches decoded files
-    (a v3 file holds several episodes)."""
+  def camera_frames(self, key: str, episode: int, streams: dict[str, Any]) -> np.ndarray:
+    """uint8 ``[L, H, W, 3]`` of camera ``key`` in ``episode``; ``streams`` holds each camera's
+    open :class:`~wmjax.data.videoio.VideoStream` (a v3 file holds several episodes, read on
+    from where the last one ended)."""
     rows = self._rows[episode]
     if self.info["features"][key]["dtype"] == "image":
       return np.stack([np.asarray(Image.open(io.BytesIO(r[key]["bytes"])).convert("RGB"))
                        for r in rows])
-    from wmjax.data.videoio import read_video
+    from wmjax.data.videoio import VideoStream
     path, first = self._video_path(key, episode)
-    if path not in videos:
+    if key not in streams or streams[key].path != path:
       if not os.path.isfile(path):
         raise ValueError(f"{self.src}: episode {episode} has no video {path}")
-      videos.clear()  # files are visited in order; keep one decoded at a time
-      videos[path] = read_video(path)
-    frames = videos[path][first:first + len(rows)]
-    if len(frames) != len(rows):
-      raise ValueError(f"{path}: episode {episode} needs frames [{first}, {first + len(rows)}) "
-                       f"but the video has {len(videos[path])}")
-    return frames
+      if key in streams:
+        streams[key].close()
+      streams[key] = VideoStream(path)
+    return streams[key].read(first, len(rows))
 
   def instruction(self, episode: int) -> str:
     tasks = self.episodes.get(episode, {}).get("tasks") or []
     return "; ".join(str(t) for t in tasks)
 
-  def steps(self, episode: int, camera: str, videos: dict) -> list[dict[str, Any]]:
+  def steps(self, episode: int, camera: str, streams: dict) -> list[dict[str, Any]]:
     """The RLDS steps of ``episode`` (see the module doc)."""
     rows = self._rows[episode]
-    cameras = {key: self.camera_frames(key, episode, videos) for key in self.cameras}
+    cameras = {"image" if key == camera else camera_name(key):
+               self.camera_frames(key, episode, streams) for key in self.cameras}
     instruction, last = self.instruction(episode), len(rows) - 1
     steps = []
     for t, row in enumerate(rows):
-      observation = {camera_name(key): _png(frames[t]) for key, frames in cameras.items()}
-      observation["image"] = observation[camera_name(camera)]
+      observation = {name: _png(frames[t]) for name, frames in cameras.items()}
       if "observation.state" in row:
         observation["state"] = np.asarray(row["observation.state"], np.float32).reshape(-1)
       steps.append({"observation": observation,
-                    "action": np.asarray(row["action"], np.float32).reshape(-1),
+                    "action": np.asarray(row[self.action_key], np.float32).reshape(-1),
                     "language_instruction": instruction, "is_first": t == 0, "is_last": t == last,
                     "is_terminal": t == last})
     return steps
@@ -178,34 +180,40 @@ def _builder_class(dataset: LeRobotDataset, camera: str):
       dims = dims[1:] + dims[:1]
     return (dims[0], dims[1], 3)
 
-  observation = {camera_name(k): tfds.features.Image(shape=image_shape(k), encoding_format="png")
+  observation = {"image" if k == camera else camera_name(k):
+                 tfds.features.Image(shape=image_shape(k), encoding_format="png")
                  for k in dataset.cameras}
-  observation["image"] = tfds.features.Image(shape=image_shape(camera), encoding_format="png")
   if "observation.state" in features:
     observation["state"] = tfds.features.Tensor(shape=(int(np.prod(shape("observation.state"))),),
                                                 dtype=np.float32)
   step = {"observation": observation,
-          "action": tfds.features.Tensor(shape=(int(np.prod(shape("action"))),), dtype=np.float32),
+          "action": tfds.features.Tensor(shape=(int(np.prod(shape(dataset.action_key))),),
+                                         dtype=np.float32),
           "language_instruction": tfds.features.Text(),
           "is_first": np.bool_, "is_last": np.bool_, "is_terminal": np.bool_}
 
   def _info(self):
     return tfds.core.DatasetInfo(
         builder=self, description=f"LeRobot dataset {dataset.src} imported by wmjax",
+        disable_shuffling=True,  # episodes in the source's order: "the last 10 %" is the last
         features=tfds.features.FeaturesDict({"steps": tfds.features.Dataset(step),
                                              "episode_metadata": {"episode_id": np.int64}}),
         metadata=tfds.core.MetadataDict(source=os.path.abspath(dataset.src), camera=camera,
-                                        fps=dataset.fps))
+                                        action=dataset.action_key, fps=dataset.fps))
 
   def _split_generators(self, dl_manager):
     return {name: self._generate_examples(episodes)
             for name, episodes in dataset.splits().items()}
 
   def _generate_examples(self, episodes):
-    videos: dict[str, np.ndarray] = {}
-    for episode in episodes:
-      yield episode, {"steps": dataset.steps(episode, camera, videos),
-                      "episode_metadata": {"episode_id": episode}}
+    streams: dict[str, Any] = {}
+    try:
+      for episode in episodes:
+        yield episode, {"steps": dataset.steps(episode, camera, streams),
+                        "episode_metadata": {"episode_id": episode}}
+    finally:
+      for stream in streams.values():
+        stream.close()
 
   return type("LeRobotImport", (tfds.core.GeneratorBasedBuilder,), {
       "name": "lerobot", "VERSION": tfds.core.Version("1.0.0"), "_info": _info,
@@ -213,14 +221,16 @@ def _builder_class(dataset: LeRobotDataset, camera: str):
   }, skip_registration=True)
 
 
-def import_lerobot(src: str, out: str, camera: str | None = None) -> str:
+def import_lerobot(src: str, out: str, camera: str | None = None,
+                   action_key: str = "action") -> str:
   """Write the LeRobot dataset ``src`` as an ArrayRecord RLDS builder directory ``out`` (must not
   exist; written beside it first and renamed when complete); ``camera``: the feature key stored
-  as ``observation/image`` (default the first camera). Returns ``out``."""
+  as ``observation/image`` (default the first camera); ``action_key``: the feature stored as the
+  action. Returns ``out``."""
   out = os.fspath(out)
   if os.path.exists(out):
     raise ValueError(f"{out} already exists; refusing to overwrite it")
-  dataset = LeRobotDataset(src)
+  dataset = LeRobotDataset(src, action_key)
   camera = camera or dataset.cameras[0]
   if camera not in dataset.cameras:
     raise ValueError(f"{src} has no camera {camera!r}; cameras: {dataset.cameras}")

@@ -217,8 +217,8 @@ SPECS: dict[str, tuple[DatasetSpec, ...]] = {
         "language_table", "oxe", ("observation/rgb",), instruction_key="observation/instruction",
         instruction_encoding="utf8_codes", action_dim=2, resolution=(288, 512)),),
 }
-# `wmjax data import lerobot` output: the chosen camera is observation/image, every camera is
-# also observation/<name> (data.image_key picks another).
+# `wmjax data import lerobot` output: the chosen camera is observation/image, every other camera
+# observation/<name> (data.image_key picks another).
 SPECS["lerobot"] = (DatasetSpec("lerobot", "wmjax_import"),)
 SPECS["bridge_dataset"] = tuple(dataclasses.replace(s, name="bridge_dataset")
                                 for s in SPECS["bridge"])
