@@ -202,14 +202,36 @@ def test_inspect_prints_features_and_a_spec_that_reads(fractal):
   _, array_record_dir = fractal
   out = _cli("data", "inspect", array_record_dir)
   assert "observation/natural_language_instruction" in out and "Image[256, 320, 3] uint8" in out
-  assert "train (3 episodes)" in out and "--config.data.spec.action_keys=" in out
+  assert "train (3 episodes)" in out
+  # the built-in spec of the same dataset is named, not a guess that differs from it
+  assert ("this is the built-in 'fractal20220817_data' spec (7-dim actions, gripper dimension 6"
+          in out and "--config.data.dataset=fractal20220817_data --config.model.action_dim=7" in out)
+  assert "suggested spec" not in out
   from wmjax.data.describe import suggest_spec
   spec = suggest_spec("fractal", open_builder(array_record_dir).info.features)
-  assert spec.action_keys[-1] == "action/gripper_closedness_action"
+  assert spec.action_keys == ("action/base_displacement_vector",  # name order, gripper last
+                              "action/base_displacement_vertical_rotation", "action/rotation_delta",
+                              "action/world_vector", "action/gripper_closedness_action")
   assert (spec.action_dim, spec.gripper_dim) == (10, 9)  # base 2 + 1, rotation 3, world 3, gripper
   assert spec.instruction_key == "observation/natural_language_instruction"
   episodes = ArrayRecordEpisodes(array_record_dir, "train", spec)
   assert episodes.episode(0).instruction == oxe_fixtures.INSTRUCTIONS[0]
+
+
+def test_inspect_recognises_a_string_tensor_instruction():
+  """The published layouts declare instructions as ``Tensor[] string``, not ``Text``."""
+  import tensorflow_datasets as tfds
+  from wmjax.data.describe import builtin_spec, suggest_spec
+  F = tfds.features
+  features = F.FeaturesDict({"steps": F.Dataset({
+      "observation": {"rgb": F.Image(shape=(8, 8, 3)),
+                      "natural_language_instruction": F.Tensor(shape=(), dtype=np.str_)},
+      "action": F.Tensor(shape=(3,), dtype=np.float32)})})
+  spec = suggest_spec("mine", features)
+  assert (spec.instruction_key, spec.instruction_encoding) == (
+      "observation/natural_language_instruction", "text")
+  assert spec.image_keys == ("observation/rgb",) and spec.action_dim == 3
+  assert builtin_spec("mine", features) is None  # no built-in layout has observation/rgb
 
 
 # ----------------------------------------------------------------------------- LeRobot

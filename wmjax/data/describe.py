@@ -20,7 +20,13 @@ def _is_image(feature) -> bool:
 
 
 def _is_text(feature) -> bool:
-  return type(feature).__name__ == "Text"
+  """A ``Text`` feature or a scalar string ``Tensor`` (how the published Open-X layouts declare
+  their instructions: ``Tensor[] string``)."""
+  if type(feature).__name__ == "Text":
+    return True
+  dtype = getattr(feature, "np_dtype", None)
+  return (dtype is not None and np.dtype(dtype).kind in "OSU"
+          and not tuple(getattr(feature, "shape", ()) or ()))
 
 
 def _size(feature) -> int:
@@ -30,8 +36,9 @@ def _size(feature) -> int:
 def suggest_spec(name: str, features) -> oxe.DatasetSpec:
   """A spec guessed from a builder's ``info.features``: one camera (``image``, ``image_0`` or
   ``rgb`` if there is one; :func:`describe` lists the others), a text or UTF-8-code instruction,
-  the ``action`` tensor or the float / bool leaves of an ``action`` dict with the gripper last."""
-  leaves = oxe.feature_leaves(features)
+  the ``action`` tensor or the float / bool leaves of an ``action`` dict in name order with the
+  gripper last (a dataset's ``features.json`` does not keep an order)."""
+  leaves = dict(sorted(oxe.feature_leaves(features).items()))
   steps = {k: f for k, f in leaves.items() if not k.startswith("episode_metadata/")}
   cameras = [k for k, f in steps.items() if _is_image(f)]
   if not cameras:
@@ -56,6 +63,17 @@ def suggest_spec(name: str, features) -> oxe.DatasetSpec:
                          action_dim=dim, gripper_dim=dim - 1 if grippers else None)
 
 
+def builtin_spec(name: str, features) -> oxe.DatasetSpec | None:
+  """The built-in spec that reads these features, the dataset's own name tried first; None if
+  none does."""
+  for candidate in [name] * (name in oxe.SPECS) + sorted(set(oxe.SPECS) - {name}):
+    try:
+      return oxe.resolve_spec(candidate, features)
+    except ValueError:
+      continue
+  return None
+
+
 def describe(builder) -> str:
   """The text ``wmjax data inspect`` prints for a TFDS builder."""
   info = builder.info
@@ -65,8 +83,18 @@ def describe(builder) -> str:
   leaves = oxe.feature_leaves(info.features)
   width = max(len(k) for k in leaves)
   lines += [f"  {key:<{width}}  {_kind(feature)}" for key, feature in sorted(leaves.items())]
+  cameras = sorted(k for k, f in leaves.items() if _is_image(f))
+  spec = builtin_spec(info.name, info.features)
+  if spec is not None:
+    others = [c for c in cameras if c not in spec.image_keys]
+    lines += ["", f"this is the built-in {spec.name!r} spec ({spec.action_dim}-dim actions"
+              + (f", gripper dimension {spec.gripper_dim}" if spec.gripper_dim is not None else "")
+              + f", camera {', '.join(spec.image_keys)}"
+              + (f"; others: {', '.join(others)}, chosen with --config.data.image_key" if others
+                 else "") + "); train on it with configs/rlds.py and",
+              f"  --config.data.dataset={spec.name} --config.model.action_dim={spec.action_dim}"]
+    return "\n".join(lines)
   spec = suggest_spec(info.name, info.features)
-  cameras = [k for k, f in leaves.items() if _is_image(f)]
   lines += ["", "suggested spec (check it; config.data.spec of configs/rlds.py, or overrides):"]
   for key, value in spec.to_dict().items():
     if key in ("name", "layout"):
