@@ -205,7 +205,8 @@ def test_inspect_prints_features_and_a_spec_that_reads(fractal):
   assert "train (3 episodes)" in out
   # the built-in spec of the same dataset is named, not a guess that differs from it
   assert ("this is the built-in 'fractal20220817_data' spec (7-dim actions, gripper dimension 6"
-          in out and "--config.data.dataset=fractal20220817_data --config.model.action_dim=7" in out)
+          in out and f"--config.data.builder_dir={array_record_dir} --config.data.dataset="
+          "fractal20220817_data --config.model.action_dim=7" in out)
   assert "suggested spec" not in out
   from wmjax.data.describe import suggest_spec
   spec = suggest_spec("fractal", open_builder(array_record_dir).info.features)
@@ -365,3 +366,35 @@ def test_lerobot_import(tmp_path, version, monkeypatch):
     import_lerobot(str(src), str(tmp_path / "x"), action_key="act")
   with pytest.raises(ValueError, match="no camera 'observation.images.side'"):
     import_lerobot(str(src), str(tmp_path / "other"), camera="observation.images.side")
+
+
+@pytest.mark.slow
+def test_own_lerobot_data_from_import_to_evaluation(tmp_path, capsys):
+  """The README's own-data path as a newcomer runs it: import, inspect, the training command
+  inspect prints (at tiny widths), evaluate on the held-out split the config names."""
+  import shlex
+
+  from wmjax import cli
+  src, out, workdir = tmp_path / "src", str(tmp_path / "data"), str(tmp_path / "run")
+  write_lerobot(src, "v3")
+  assert cli.main(["data", "import", "lerobot", str(src), out]) == 0
+  capsys.readouterr()
+  assert cli.main(["data", "inspect", out]) == 0
+  printed = capsys.readouterr().out
+  assert "this is the built-in 'lerobot' spec (2-dim actions" in printed
+  command = shlex.split(printed.splitlines()[-1].replace("WORKDIR", workdir))
+  assert command[:2] == ["wmjax", "train"] and "--config.model.action_dim=2" in command
+  config_file = command[command.index("--config") + 1]
+  command[command.index("--config") + 1] = os.path.join(os.path.dirname(__file__), "..", config_file)
+  tiny = {"data.resolution": (16, 16), "frame_shape": (16, 16, 3), "model.depth": 2,
+          "model.hidden_size": 32, "model.num_heads": 2, "batch_size": 8, "train.num_steps": 1,
+          "train.eval_every": 0}
+  assert cli.main(command[1:] + [f"--config.{k}={v!r}" for k, v in tiny.items()]) == 0
+  capsys.readouterr()
+  assert cli.main(["evaluate", "--workdir", workdir, "--protocols", "long",
+                   "--videos", "0"]) == 0
+  results = json.loads((tmp_path / "run" / "eval" / "train[90%:]-step1" / "metrics.json")
+                       .read_text())
+  # train[90%:] of 4 episodes holds out the last one (3 steps) whole
+  assert results["long"]["trajectories"] == 1
+  assert np.isfinite(results["long"]["model"]["mse"]["mean"])

@@ -411,6 +411,11 @@ def test_bad_inputs_end_in_one_line_with_exit_2(tmp_path, capsys, monkeypatch):
                  "no TFDS dataset at")
   one_line_error(capsys, ["train", "--config", grid, "--workdir", str(tmp_path / "w2"),
                           "--config.data.frames=6"], "exceeds model.num_frames")
+  one_line_error(capsys, ["data", "import", "lerobot", missing, str(tmp_path / "out")],
+                 "is not a LeRobot dataset: no meta/info.json")
+  one_line_error(capsys, ["data", "encode", "--config", os.path.join(ROOT, "configs", "bridge.py"),
+                          "--out", str(tmp_path / "enc"), f"--config.codec.path={missing!r}"],
+                 "has no config.json .expected a diffusers AutoencoderKL folder")
   monkeypatch.setenv("WMJAX_DEBUG", "1")
   with pytest.raises(ValueError, match="exceeds model.num_frames"):
     cli.main(["train", "--config", grid, "--workdir", str(tmp_path / "w3"),

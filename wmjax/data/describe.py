@@ -91,8 +91,10 @@ def describe(builder) -> str:
               + (f", gripper dimension {spec.gripper_dim}" if spec.gripper_dim is not None else "")
               + f", camera {', '.join(spec.image_keys)}"
               + (f"; others: {', '.join(others)}, chosen with --config.data.image_key" if others
-                 else "") + "); train on it with configs/rlds.py and",
-              f"  --config.data.dataset={spec.name} --config.model.action_dim={spec.action_dim}"]
+                 else "") + "); train on it with",
+              f"  wmjax train --config configs/rlds.py --workdir WORKDIR "
+              f"--config.data.builder_dir={builder.data_dir} --config.data.dataset={spec.name} "
+              f"--config.model.action_dim={spec.action_dim}"]
     return "\n".join(lines)
   spec = suggest_spec(info.name, info.features)
   lines += ["", "suggested spec (check it; config.data.spec of configs/rlds.py, or overrides):"]
