@@ -117,6 +117,22 @@ def test_parameters_carry_logical_axes():
     assert len(box.names) == box.value.ndim
 
 
+def test_world_model_init_boxes_and_plain_arrays_are_interchangeable():
+  """``WorldModel.init`` returns boxed leaves, ``load_model`` plain arrays: the network takes
+  either, and ``nn.unbox`` turns the one into the other."""
+  wm = WorldModel.from_config(tiny_config())
+  boxed = wm.init(jax.random.key(0), (8, 8, 4), frames=3)
+  leaves = jax.tree.leaves(boxed, is_leaf=lambda v: isinstance(v, nn.LogicallyPartitioned))
+  assert all(isinstance(v, nn.LogicallyPartitioned) for v in leaves)
+  plain = nn.unbox(boxed)
+  assert not any(isinstance(v, nn.Partitioned) for v in jax.tree.leaves(
+      plain, is_leaf=lambda v: isinstance(v, nn.Partitioned)))
+  assert jax.tree.structure(plain) == jax.tree.structure(nn.unbox(plain))
+  apply = jit_apply(wm.network)
+  x, t, a = _inputs(1, 3, 8, 8, 4, 7)
+  np.testing.assert_array_equal(apply(boxed, x, t, a), apply(plain, x, t, a))
+
+
 def test_scanned_and_unrolled_layers_agree():
   model, params, (x, t, a) = _model("per_frame")
   unrolled = model.clone(scan_layers=False)

@@ -119,3 +119,21 @@ def test_keyboard_driver_maps_keys_to_action_chunks():
     driver.press("Space")
   with pytest.raises(ValueError, match="axes must be two different"):
     KeyboardDriver(env, axes=(0, 0))
+
+
+@pytest.mark.parametrize("batch", [8, 3])  # split over the 8 devices, or not divisible
+def test_steps_compile_one_program(batch):
+  """The window reset makes and the one a step leaves are laid out alike: one compile, not a
+  second at the second step (a loaded model's parameters live on the rollout mesh)."""
+  from jax.sharding import NamedSharding, PartitionSpec
+
+  from wmjax import rollout
+  from wmjax.parallel import local_data_mesh
+  wm, params = tiny_world_model("wpe_600m.py", "sampling.num_steps=2", frame_shape=(8, 8, 16))
+  params = jax.device_put(params, NamedSharding(local_data_mesh(), PartitionSpec()))
+  env = WorldModelEnv(wm, params, context=1, horizon=1, action_stats=_stats(7), seed=0)
+  env.reset(np.zeros((batch, 1, 8, 8, 16), np.float32))
+  before = rollout._sample_block_jit._cache_size()
+  for _ in range(3):
+    env.step(np.zeros((batch, 1, 7), np.float32))
+  assert rollout._sample_block_jit._cache_size() - before == 1

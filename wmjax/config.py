@@ -5,7 +5,7 @@ A config is an ``ml_collections.ConfigDict`` whose sections follow the dataclass
 for ``model``, ``sampling`` and ``data.spec``, the dataclasses they configure:
 :class:`wmjax.nn.STDiT`, :class:`wmjax.diffusion.SamplerConfig`,
 :class:`wmjax.data.oxe.DatasetSpec`; ``data.<generated dataset>`` follows that dataset's
-parameters, e.g. :class:`~wmjax.data.gridworld.GridworldConfig`). :func:`complete_config` checks a
+parameters, e.g. :class:`~wmjax.tasks.gridworld.dataset.GridworldConfig`). :func:`complete_config` checks a
 config against them: an unknown key raises :class:`ConfigError` naming the nearest valid keys, a
 value of the wrong type raises naming the type wanted, and every key left out takes its default
 here, so code reads ``config.data.train_split`` and never repeats a default. Config files and

@@ -17,6 +17,7 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec
 
 from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.stats import ActionStats
@@ -111,7 +112,8 @@ class WorldModelEnv:
       raise ValueError("initial_frames contain NaN or inf values")
     b, c0 = frames.shape[:2]
     # Episodes are split over the local devices (when B divides evenly); every step follows.
-    self._window, = shard_rollout_batch(self.codec.encode(frames, jax.random.split(self.rng)[1]))
+    window, = shard_rollout_batch(self.codec.encode(frames, jax.random.split(self.rng)[1]))
+    self._window = jax.device_put(window, self._layout(window))
     self._history = np.zeros((b, c0 - 1, self.action_dim), np.float32)
     self._known = np.zeros((b, c0 - 1), bool)
     if context_actions is not None:
@@ -121,6 +123,18 @@ class WorldModelEnv:
     self._frames = [np.asarray(frames)]
     self._step = 0
     return frames, {"frames": c0}
+
+  def _layout(self, window: jax.Array) -> jax.sharding.Sharding:
+    """Where the window lives from reset on, every step's new window put back there, so that all
+    steps run the program the first one compiled (a jitted step returns its output committed,
+    which an uncommitted first window is not): split over the rollout mesh when the batch
+    divides, else beside the parameters (replicated on their mesh, or on their device)."""
+    if isinstance(window.sharding, NamedSharding):
+      return window.sharding
+    placed = jax.tree.leaves(self.params)[0].sharding
+    if isinstance(placed, NamedSharding):
+      return NamedSharding(placed.mesh, PartitionSpec())
+    return placed
 
   def step(self, action_chunk) -> tuple[jax.Array, np.ndarray, np.ndarray, np.ndarray, dict]:
     """Apply ``action_chunk [B, k, A]`` (raw, ``1 <= k <= horizon``): returns (the ``k`` new
@@ -137,7 +151,9 @@ class WorldModelEnv:
     frames = self.codec.decode(new)
     actions_so_far = np.concatenate([self._history, actions], axis=1)
     known_so_far = np.concatenate([self._known, np.ones((b, k), bool)], axis=1)
-    self._window = jnp.concatenate([self._window, new], axis=1)[:, -self.context:]
+    # laid out as reset laid it out, so that every step runs the program the first one compiled
+    self._window = jax.device_put(jnp.concatenate([self._window, new], axis=1)[:, -self.context:],
+                                  self._window.sharding)
     between = self._window.shape[1] - 1  # actions between the window's frames
     self._history = actions_so_far[:, actions_so_far.shape[1] - between:]
     self._known = known_so_far[:, known_so_far.shape[1] - between:]

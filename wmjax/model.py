@@ -56,7 +56,12 @@ class WorldModel:
   def init(self, rng: jax.Array, frame_shape: tuple[int, int, int], frames: int | None = None
            ) -> Params:
     """Initial variables for frames of ``frame_shape = (H, W, C)``, compiled as one program (run
-    eagerly, every initialiser and layer would be an XLA program of its own)."""
+    eagerly, every initialiser and layer would be an XLA program of its own).
+
+    The leaves are Flax boxes (``flax.linen.LogicallyPartitioned``: the array and its logical
+    axis names, which the sharding rules of :mod:`wmjax.parallel` map to a mesh). The model's
+    methods take them as they are; ``flax.linen.unbox(variables)`` gives the plain arrays that
+    :func:`load_model` returns and that an optax optimiser or a checkpoint wants."""
     n = frames or self.network.num_frames
     x = jnp.zeros((1, n) + tuple(frame_shape), jnp.float32)
     actions = jnp.zeros((1, n - 1, self.network.action_dim), jnp.float32)

@@ -46,8 +46,14 @@ def scheduling_matrix(kind: str, num_steps: int, horizon: int) -> np.ndarray:
 class SamplerConfig:
   """How a window is sampled.
 
-  ``context_level`` is the stabilisation level at which clean context frames are shown
-  (a DDPM level, e.g. 15 of 1000, or a flow time such as 0.01). ``guidance_scale`` w gives
+  ``sampler`` (:data:`SAMPLERS`): ``ddim`` (deterministic at ``eta=0``, ancestral noise as
+  ``eta`` rises to 1) and ``ddpm`` (ancestral) for Gaussian processes, ``euler`` for flow
+  matching; ``num_steps`` of them per window, spaced evenly in the process's time.
+  ``matrix`` (:data:`SCHEDULING_MATRICES`, see :func:`scheduling_matrix`): ``full_sequence``
+  (every new frame at one level), ``pyramid`` (each later frame a level behind) or
+  ``autoregressive`` (one frame after the other). ``context_level`` is the stabilisation level
+  at which clean context frames are shown (a DDPM level, e.g. 15 of 1000, or a flow time such as
+  0.01). ``guidance_scale`` w gives
   ``out = out_null + w (out_cond - out_null)``; 1 disables guidance. ``clip_denoised`` clips the
   x0 estimate to [-1, 1] at every step (pixel-space models). ``kv_cache`` runs the context
   frames through the network once per window and keeps their temporal keys and values, so each
