@@ -1,6 +1,8 @@
 """Video metrics against the reference libraries (scikit-image, dm-pix, scipy), the gridworld
 square-position error, Fréchet distances and aggregation."""
 
+import warnings
+
 import dm_pix
 import numpy as np
 import pytest
@@ -61,20 +63,34 @@ def test_ssim_windows_equal_scikit_image_and_dm_pix():
 def test_grayscale_metrics_follow_irasim():
   """IRASim: cv2 BGR->gray on uint8 frames, PSNR with data_range 255, skimage's default SSIM."""
   a, b = _pair((2, 2, 16, 16, 3), seed=2)
-  gray = np.asarray(metrics.grayscale(a))[..., 0]
+  gray = np.asarray(metrics.grayscale(a))
+  assert gray.dtype == np.uint8 and gray.shape == a.shape[:-1] + (1,)
   r, g, b_ = (a[..., i].astype(np.int64) for i in range(3))
   by_hand = (4899 * r + 9617 * g + 1868 * b_ + 8192) >> 14
-  np.testing.assert_array_equal(np.round(gray * 255).astype(int), by_hand)
-  gray_a = np.round(np.asarray(metrics.grayscale(a))[..., 0] * 255).astype(np.uint8)
-  gray_b = np.round(np.asarray(metrics.grayscale(b))[..., 0] * 255).astype(np.uint8)
-  as_model = lambda g: g[..., None].astype(np.float32) / 127.5 - 1.0
+  np.testing.assert_array_equal(gray[..., 0], by_hand)
+  gray_a, gray_b = np.asarray(metrics.grayscale(a)), np.asarray(metrics.grayscale(b))
   np.testing.assert_allclose(
-      metrics.ssim(as_model(gray_b), as_model(gray_a), "uniform"),
-      _reference(skm.structural_similarity, gray_b, gray_a), atol=1e-5)
+      metrics.ssim(gray_b, gray_a, "uniform"),
+      _reference(skm.structural_similarity, gray_b[..., 0], gray_a[..., 0]), atol=1e-5)
   np.testing.assert_allclose(
-      metrics.psnr(as_model(gray_b), as_model(gray_a)),
-      _reference(lambda x, y: skm.peak_signal_noise_ratio(x, y, data_range=255), gray_a, gray_b),
+      metrics.psnr(gray_b, gray_a),
+      _reference(lambda x, y: skm.peak_signal_noise_ratio(x, y, data_range=255), gray_a[..., 0],
+                 gray_b[..., 0]),
       rtol=1e-5)
+
+
+def test_float_frames_in_zero_one_are_warned_about():
+  """The metrics read float frames as [-1, 1]; [0, 1] floats would give a PSNR ~6 dB too high."""
+  a, b = _pair((2, 16, 16, 3), seed=5)
+  unit_a, unit_b = a / np.float32(255), b / np.float32(255)
+  with pytest.warns(UserWarning, match=r"floats in \[0, 1\].*pass uint8 frames or 2 \* frames - 1"):
+    wrong = metrics.psnr(unit_a, unit_b)
+  np.testing.assert_allclose(wrong - metrics.psnr(a, b), 6.0, atol=0.5)
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")  # uint8, [-1, 1] floats and the grayscale path say nothing
+    np.testing.assert_allclose(metrics.psnr(2 * unit_a - 1, 2 * unit_b - 1), metrics.psnr(a, b),
+                               rtol=1e-5)
+    metrics.frame_metrics(a[None], b[None], {})
 
 
 def test_mse_latent_l2_and_masked_mse():

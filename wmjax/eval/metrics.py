@@ -10,6 +10,10 @@ them in [0, 1]. Callers skip the context frames, which are copies of the ground 
   uses. Colour frames average the per-channel SSIM, as scikit-image with ``channel_axis=-1``.
 - :func:`grayscale`: BT.601 luma in uint8 exactly as ``cv2.cvtColor(..., COLOR_RGB2GRAY)``;
   IRASim computes PSNR and SSIM on these.
+
+The pixel metrics warn when both float inputs lie in [0, 1] (no value below 0): such frames are
+most likely [0, 1] images, which read as [-1, 1] give a PSNR about 6 dB too high. Pass uint8
+frames, or ``2 x - 1``.
 - :func:`mse` on [0, 1] pixels, :func:`latent_l2` on raw (latent) values, :func:`masked_mse` over
   user masks (WPE's arm / object MSE); :func:`frame_metrics` computes them all per frame, with a
   task's own (:mod:`wmjax.tasks.registry`).
@@ -37,8 +41,9 @@ if TYPE_CHECKING:
 
 
 def grayscale(frames) -> jax.Array:
-  """RGB ``[..., H, W, 3]`` -> BT.601 luma ``[..., H, W, 1]`` in [0, 1], quantised to uint8 with
-  OpenCV's fixed-point arithmetic (``(4899 R + 9617 G + 1868 B + 8192) >> 14``)."""
+  """RGB ``[..., H, W, 3]`` -> BT.601 luma ``[..., H, W, 1]`` in uint8, with OpenCV's
+  fixed-point arithmetic (``(4899 R + 9617 G + 1868 B + 8192) >> 14``); the metrics take it as
+  it is."""
   if np.shape(frames)[-1:] != (3,):
     raise ValueError(f"grayscale needs RGB frames [..., H, W, 3], got {np.shape(frames)}")
   return _luma(jnp.asarray(frames))
@@ -52,7 +57,7 @@ def _luma(frames: jax.Array) -> jax.Array:
       jnp.uint8)
   weights = jnp.array([4899, 9617, 1868], jnp.int32)
   luma = ((rgb.astype(jnp.int32) * weights).sum(-1, keepdims=True) + 8192) >> 14
-  return luma.astype(jnp.float32) / 255.0
+  return luma.astype(jnp.uint8)
 
 
 def _check_pair(pred, target) -> None:
@@ -61,6 +66,15 @@ def _check_pair(pred, target) -> None:
                      f"{np.shape(target)}")
   if np.ndim(pred) < 3:
     raise ValueError(f"frames must be [..., H, W, C], got shape {np.shape(pred)}")
+
+
+def _warn_unit_floats(*frames) -> None:
+  """Warn when every float input lies in [0, 1]: the pixel metrics read floats as [-1, 1]."""
+  if all(jnp.issubdtype(jnp.result_type(f), jnp.floating) for f in frames) and all(
+      float(jnp.min(f)) >= 0.0 and float(jnp.max(f)) <= 1.0 for f in frames):
+    warnings.warn("the frames are floats in [0, 1] (none below 0), but the metrics read float "
+                  "frames as [-1, 1]: pass uint8 frames or 2 * frames - 1 (the PSNR of [0, 1] "
+                  "frames read as [-1, 1] is about 6 dB too high)", stacklevel=3)
 
 
 def latent_l2(pred, target) -> jax.Array:
@@ -77,6 +91,7 @@ def _mean_square(a: jax.Array, b: jax.Array) -> jax.Array:
 def mse(pred, target) -> jax.Array:
   """Pixel MSE per frame on [0, 1] images."""
   _check_pair(pred, target)
+  _warn_unit_floats(pred, target)
   return _pixel_mse(jnp.asarray(pred), jnp.asarray(target))
 
 
@@ -89,6 +104,7 @@ def masked_mse(pred, target, mask) -> jax.Array:
   """Pixel MSE per frame over the pixels where ``mask [..., H, W]`` is true (WPE eq. 3); NaN for
   a frame whose mask is empty (aggregate with ``nanmean``)."""
   _check_pair(pred, target)
+  _warn_unit_floats(pred, target)
   if np.shape(mask) != np.shape(pred)[:-1]:
     raise ValueError(f"mask must be [..., H, W] = {np.shape(pred)[:-1]}, got {np.shape(mask)}")
   return _masked_mse(jnp.asarray(pred), jnp.asarray(target), jnp.asarray(mask, bool))
@@ -105,6 +121,7 @@ def _masked_mse(pred: jax.Array, target: jax.Array, mask: jax.Array) -> jax.Arra
 def psnr(pred, target, max_db: float = 100.0) -> jax.Array:
   """PSNR (dB) per frame on [0, 1] images; identical frames give ``max_db`` instead of +inf."""
   _check_pair(pred, target)
+  _warn_unit_floats(pred, target)
   return _psnr(jnp.asarray(pred), jnp.asarray(target), max_db)
 
 
@@ -144,6 +161,7 @@ def _ssim(pred: jax.Array, target: jax.Array, window: str) -> jax.Array:
 def ssim(pred, target, window: str = "gaussian") -> jax.Array:
   """SSIM per frame (see the module doc for ``window``); frames at least 11 (7) pixels a side."""
   _check_pair(pred, target)
+  _warn_unit_floats(pred, target)
   if window not in ("gaussian", "uniform"):
     raise ValueError(f"window must be 'gaussian' or 'uniform', got {window!r}")
   size = 11 if window == "gaussian" else _UNIFORM_WINDOW
@@ -173,9 +191,9 @@ def frame_metrics(pred, truth, extras: Mapping[str, np.ndarray],
     if min(h, w) >= 11:
       result["ssim"] = ssim(pred, truth, "gaussian")
     gray_pred, gray_truth = grayscale(pred), grayscale(truth)
-    result["gray_psnr"] = psnr(gray_pred * 2 - 1, gray_truth * 2 - 1)
+    result["gray_psnr"] = psnr(gray_pred, gray_truth)
     if min(h, w) >= 7:
-      result["gray_ssim"] = ssim(gray_pred * 2 - 1, gray_truth * 2 - 1, "uniform")
+      result["gray_ssim"] = ssim(gray_pred, gray_truth, "uniform")
   masks = extras.get("masks")
   if task is not None:
     result.update(task.compute(pred, truth, extras))
