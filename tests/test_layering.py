@@ -13,7 +13,8 @@ pytestmark = pytest.mark.integration
 # Bottom to top; a module belongs to the layer of its longest listed prefix. Push-T's evaluation
 # against its simulator uses the generic evaluation tools, so it sits beside them.
 LAYERS = (
-    ("wmjax", "wmjax.frames", "wmjax.errors", "wmjax.parallel", "wmjax.launch", "wmjax.config"),
+    ("wmjax", "wmjax.frames", "wmjax.errors", "wmjax.parallel", "wmjax.launch", "wmjax.config",
+     "wmjax.registry"),
     ("wmjax.nn", "wmjax.diffusion", "wmjax.data"),
     ("wmjax.codecs", "wmjax.model"),
     ("wmjax.rollout", "wmjax.env", "wmjax.interactive"),
@@ -21,8 +22,9 @@ LAYERS = (
     ("wmjax.train", "wmjax.eval", "wmjax.tasks.pusht.evaluate"),
     ("wmjax.cli",),
 )
-# what may not be loaded even though it sits lower: eval never imports train
-FORBIDDEN = {"wmjax.eval": ("wmjax.train",)}
+# what may not be loaded though it sits lower: eval never imports train, and finds the tasks
+# through wmjax.registry (which loads them when first asked, not when imported)
+FORBIDDEN = {"wmjax.eval": ("wmjax.train", "wmjax.tasks")}
 
 
 def layer_of(module: str) -> int:
@@ -72,15 +74,16 @@ def _top(module: str) -> str:
   return ".".join(module.split(".")[:2])
 
 
-# every package, and the modules that load the most of their package
-PACKAGES = ["wmjax.frames", "wmjax.errors", "wmjax.parallel", "wmjax.config", "wmjax.nn",
-            "wmjax.diffusion", "wmjax.data.pipeline", "wmjax.data.latents", "wmjax.codecs",
-            "wmjax.model", "wmjax.rollout", "wmjax.env", "wmjax.interactive", "wmjax.tasks",
-            "wmjax.tasks.pusht.evaluate", "wmjax.eval.evaluate", "wmjax.eval.rewards",
-            "wmjax.eval.policy_eval", "wmjax.eval.user_rollout", "wmjax.train.loop",
-            "wmjax.train.info", "wmjax.train.encode", "wmjax.cli", "wmjax.cli.train",
-            "wmjax.cli.evaluate", "wmjax.cli.rollout", "wmjax.cli.pusht", "wmjax.cli.launch",
-            "wmjax.cli.info", "wmjax.cli.compile", "wmjax.cli.data"]
+def _every_module() -> list[str]:
+  import pkgutil
+
+  import wmjax
+  return ["wmjax"] + sorted(m.name for m in pkgutil.walk_packages(wmjax.__path__, "wmjax.")
+                            if m.name != "wmjax.cli.__main__")  # runs the command line
+
+
+# every module of the package
+PACKAGES = _every_module()
 
 
 @pytest.fixture(scope="module")
@@ -106,8 +109,17 @@ def test_data_loads_no_model_code(loaded):
   assert not model_code, model_code
 
 
-def test_eval_loads_nothing_of_train(loaded):
-  assert not [m for m in loaded["wmjax.eval"] if m.startswith("wmjax.train")]
+def test_eval_loads_neither_train_nor_the_tasks(loaded):
+  assert not [m for m in loaded["wmjax.eval"] if m.startswith(("wmjax.train", "wmjax.tasks"))]
+
+
+def test_the_registry_finds_the_built_in_tasks_without_their_import():
+  """Code below the tasks' layer never imports them; a lookup loads them."""
+  found = subprocess.run([sys.executable, "-c", (
+      "import sys; from wmjax import registry; assert 'wmjax.tasks' not in sys.modules; "
+      "print(registry.frame_metrics_of('pusht').headline, sorted(registry.rewards()))")],
+      capture_output=True, text=True, check=True).stdout.split()
+  assert found[0] and "coverage" in " ".join(found[1:])
 
 
 def test_a_package_loads_the_same_alone_as_after_others():

@@ -115,9 +115,10 @@ class DataConfig:
   @staticmethod
   def extra_sections() -> dict[str, type]:
     """``data.<name>`` sections beyond the fields: the parameters of each generated dataset
-    registered in this process (:func:`wmjax.data.sources.register_generated`; importing
-    :mod:`wmjax.tasks`, as the gridworld and Push-T config files do, registers them)."""
-    sources = sys.modules.get("wmjax.data.sources")  # nothing is registered before it loads
+    (:func:`wmjax.data.sources.register_generated`; the built-in tasks' are loaded here)."""
+    from wmjax import registry
+    registry.load_built_in_tasks()
+    sources = sys.modules.get("wmjax.data.sources")  # the tasks have loaded it
     return {name: entry[0] for name, entry in getattr(sources, "GENERATED", {}).items()}
 
 

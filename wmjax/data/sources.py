@@ -26,6 +26,7 @@ import ml_collections
 import numpy as np
 import tensorflow_datasets as tfds
 
+from wmjax import registry
 from wmjax.data import oxe
 from wmjax.data.rlds import Episode, skip_image_decoding, stack_steps
 from wmjax.data.stats import ActionStats
@@ -308,9 +309,11 @@ def register_generated(name: str, params_class: type, prepare: Callable[[str, An
 
 def dataset_dir(data: ml_collections.ConfigDict) -> str:
   """The ArrayRecord builder directory of a data config (``config.data`` or a mixture member):
-  ``builder_dir``, or for a generated dataset (:data:`GENERATED`: gridworld, Push-T once
-  :mod:`wmjax.tasks` is imported) ``data_dir``, where it is generated if missing with the
+  ``builder_dir``, or for a generated dataset (:data:`GENERATED`: gridworld, Push-T, which
+  :mod:`wmjax.tasks` registers) ``data_dir``, where it is generated if missing with the
   parameters in ``config.data.<dataset>``."""
+  if data.dataset not in GENERATED:
+    registry.load_built_in_tasks()
   if data.dataset in GENERATED:
     params_class, prepare = GENERATED[data.dataset]
     params = params_class.from_dict(data.get(data.dataset, {}))

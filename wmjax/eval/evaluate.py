@@ -12,7 +12,7 @@ from typing import Callable, Sequence
 
 import jax
 
-from wmjax import tasks  # importing it registers the tasks (generated datasets, metrics)
+from wmjax import registry
 from wmjax.data.sources import member_configs, open_dataset
 from wmjax.eval import video as video_lib
 from wmjax.eval.frechet import FrechetDistances
@@ -57,7 +57,7 @@ def evaluate_checkpoint(workdir: str, *, split: str | None = None, out: str | No
     episodes.spec = dataclasses.replace(episodes.spec,
                                         extra_keys=episodes.spec.extra_keys + (mask_key,))
   resolution = dataset.resolution(episodes.spec)
-  task = tasks.registry.frame_metrics_of(episodes.spec.name)
+  task = registry.frame_metrics_of(episodes.spec.name)
   normalize = functools.partial(model.action_stats.normalize, mode=config.data.normalization,
                                 pad_to=config.model.action_dim)
 

@@ -16,7 +16,7 @@ most likely [0, 1] images, which read as [-1, 1] give a PSNR about 6 dB too high
 frames, or ``2 x - 1``.
 - :func:`mse` on [0, 1] pixels, :func:`latent_l2` on raw (latent) values, :func:`masked_mse` over
   user masks (WPE's arm / object MSE); :func:`frame_metrics` computes them all per frame, with a
-  task's own (:mod:`wmjax.tasks.registry`).
+  task's own (:mod:`wmjax.registry`).
 - Fréchet distances (FID over frames, FVD over clips) from the features of a feature network:
   :class:`FeatureMoments` accumulates them, :func:`frechet_distance` compares two.
 - :func:`mean_stderr` aggregates.
@@ -37,7 +37,7 @@ import scipy.linalg
 from wmjax.frames import to_unit
 
 if TYPE_CHECKING:
-  from wmjax.tasks.registry import FrameMetrics
+  from wmjax.registry import FrameMetrics
 
 
 def grayscale(frames) -> jax.Array:
@@ -184,7 +184,7 @@ def frame_metrics(pred, truth, extras: Mapping[str, np.ndarray],
   the generated frames only): MSE, PSNR, SSIM and IRASim's grayscale PSNR / SSIM (SSIM needs
   frames of at least 11 (colour) / 7 (grayscale) pixels), the masked MSE over ``extras['masks']``
   (per-frame ``[E, T, H, W]``) or the task's object masks, and the ``task``'s own metrics
-  (:class:`wmjax.tasks.registry.FrameMetrics`) from the per-frame ``extras``."""
+  (:class:`wmjax.registry.FrameMetrics`) from the per-frame ``extras``."""
   result = {"mse": mse(pred, truth), "psnr": psnr(pred, truth)}
   h, w, c = np.shape(truth)[-3:]
   if c == 3:

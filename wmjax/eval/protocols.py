@@ -31,7 +31,7 @@ from wmjax.eval.frechet import FrechetDistances
 from wmjax.eval.rollouts import run_rollouts
 from wmjax.eval.trajectories import Trajectories, as_masks, whole_episodes, windows_of
 from wmjax.model import LoadedModel
-from wmjax.tasks.registry import FrameMetrics
+from wmjax.registry import FrameMetrics
 
 
 def sweep_settings(num_frames: int, context: int, horizon: int,

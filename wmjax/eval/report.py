@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from wmjax.eval.metrics import LOWER_IS_BETTER
-from wmjax.tasks.registry import FrameMetrics
+from wmjax.registry import FrameMetrics
 
 
 def _cell(entry: dict, digits: int = 4) -> str:

@@ -6,7 +6,7 @@
   planning value), as negative MSE;
 * :class:`SuccessClassifier` — a small CNN trained on dataset frames and success labels, giving
   the probability that the last frame shows success;
-* a task's named rewards (:mod:`wmjax.tasks.registry`), e.g. ``coverage``: Push-T goal coverage
+* a task's named rewards (:mod:`wmjax.registry`), e.g. ``coverage``: Push-T goal coverage
   read from the last frame (:func:`wmjax.tasks.pusht.rewards.coverage`).
 """
 
@@ -27,7 +27,7 @@ from flax import serialization
 
 from wmjax.eval.vlm import VLMJudge  # noqa: F401  (re-exported: the VLM reward)
 from wmjax.frames import to_model
-from wmjax.tasks import registry
+from wmjax import registry
 
 
 def _last_frames(frames) -> jax.Array:
@@ -181,7 +181,7 @@ def labelled_frames(builder_dir: str, split: str, key: str, threshold: float, *,
 
 
 def reward_from_spec(spec: str):
-  """A task's reward by name (:func:`wmjax.tasks.registry.rewards`, e.g. ``coverage`` for
+  """A task's reward by name (:func:`wmjax.registry.rewards`, e.g. ``coverage`` for
   Push-T), ``vlm`` (:meth:`VLMJudge.from_env`), ``classifier:DIR`` (a saved
   :class:`SuccessClassifier`) or ``goal:IMAGE`` (:class:`GoalImageDistance` to a PNG / JPG)."""
   name, _, argument = spec.partition(":")

@@ -16,7 +16,7 @@ from wmjax.frames import to_model, to_uint8
 from wmjax.model import LoadedModel
 from wmjax.parallel import shard_rollout_batch
 from wmjax.rollout import rollout
-from wmjax.tasks.registry import FrameMetrics
+from wmjax.registry import FrameMetrics
 
 
 def _summarize(per_frame: dict[str, np.ndarray]) -> dict[str, dict]:

@@ -49,7 +49,7 @@ from wmjax.eval.metrics import frame_metrics
 from wmjax.eval.video import comparison, stack_rows, write_video
 from wmjax.model import WorldModel
 from wmjax.rollout import rollout
-from wmjax.tasks.registry import FrameMetrics, frame_metrics_of
+from wmjax.registry import FrameMetrics, frame_metrics_of
 from wmjax.train import fit, memory
 from wmjax.train.checkpoint import Checkpointer, shapes_by_path
 from wmjax.train.data import build_data, eval_windows

@@ -2,7 +2,7 @@
 (:mod:`.metrics`), registered with the generic code."""
 
 from wmjax.data.sources import register_generated
-from wmjax.tasks import registry
+from wmjax import registry
 from wmjax.tasks.gridworld import dataset, metrics
 
 register_generated("gridworld", dataset.GridworldConfig, dataset.prepare)

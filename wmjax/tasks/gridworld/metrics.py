@@ -16,7 +16,7 @@ import scipy.ndimage
 
 from wmjax.frames import to_uint8
 from wmjax.tasks.gridworld.dataset import COLORS
-from wmjax.tasks.registry import FrameMetrics
+from wmjax.registry import FrameMetrics
 
 
 def color_masks(frames, colors: np.ndarray, tolerance: float = 60.0) -> np.ndarray:

@@ -5,7 +5,7 @@ code. :mod:`.evaluate` (policy evaluation and planning against the
 simulator) sits on the evaluation layer and is imported by the command line, not from here."""
 
 from wmjax.data.sources import register_generated
-from wmjax.tasks import registry
+from wmjax import registry
 from wmjax.tasks.pusht import dataset, metrics, rewards
 
 register_generated("pusht", dataset.PushTConfig, dataset.prepare)

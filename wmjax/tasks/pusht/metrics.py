@@ -22,7 +22,7 @@ import numpy as np
 
 from wmjax.frames import to_model
 from wmjax.tasks.pusht.simulator import object_masks
-from wmjax.tasks.registry import FrameMetrics
+from wmjax.registry import FrameMetrics
 
 
 def _masks(frames) -> tuple[np.ndarray, np.ndarray]:

@@ -6,12 +6,16 @@
   :func:`wmjax.eval.rewards.reward_from_spec`.
 
 Generated datasets register with :func:`wmjax.data.sources.register_generated` and dataset specs
-with :func:`wmjax.data.oxe.register`. Importing :mod:`wmjax.tasks` registers every built-in task.
+with :func:`wmjax.data.oxe.register`. Importing :mod:`wmjax.tasks` registers every built-in task;
+the lookups here and in :mod:`wmjax.data.sources` do it on first use
+(:func:`load_built_in_tasks`), so that the code below the tasks' layer, which never imports
+them by name, still finds them. A task of your own registers the same way, when imported.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import importlib
 from typing import Callable, Mapping
 
 import numpy as np
@@ -39,6 +43,11 @@ _FRAME_METRICS: dict[str, FrameMetrics] = {}
 _REWARDS: dict[str, Callable] = {}
 
 
+def load_built_in_tasks() -> None:
+  """Import :mod:`wmjax.tasks`, whose packages register here (once; later calls cost nothing)."""
+  importlib.import_module("wmjax.tasks")
+
+
 def register_frame_metrics(dataset: str, metrics: FrameMetrics) -> None:
   """Score frames of the dataset whose spec is named ``dataset`` with ``metrics`` too."""
   _FRAME_METRICS[dataset] = metrics
@@ -46,6 +55,7 @@ def register_frame_metrics(dataset: str, metrics: FrameMetrics) -> None:
 
 def frame_metrics_of(dataset: str) -> FrameMetrics | None:
   """The task metrics registered for ``dataset``, if any."""
+  load_built_in_tasks()
   return _FRAME_METRICS.get(dataset)
 
 
@@ -56,4 +66,5 @@ def register_reward(name: str, reward: Callable) -> None:
 
 def rewards() -> dict[str, Callable]:
   """Every registered reward by name."""
+  load_built_in_tasks()
   return dict(_REWARDS)
