@@ -24,6 +24,7 @@ Workdir layout: ``checkpoints/``, ``tensorboard/``, ``metrics.jsonl``, ``samples
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import hashlib
 import json
@@ -261,12 +262,24 @@ def train(config: ml_collections.ConfigDict, workdir: str, *,
       lock.release()
 
 
-def _train(config: ml_collections.ConfigDict, workdir: str,
-           allow: tuple[str, ...]) -> tuple[Any, dict]:
-  from tensorboardX import SummaryWriter
-  from tqdm import tqdm
+@dataclasses.dataclass
+class _Setup:
+  """What a run is built from, checked and compiled before any state exists."""
 
-  is_chief = jax.process_index() == 0
+  config: ml_collections.ConfigDict  # as fitted to the device's memory (remat, accumulation)
+  data: Any  # wmjax.train.data.TrainData
+  mesh: Any
+  trainer: ShardedTrainer
+  say: Any  # print on the chief process, nothing elsewhere
+
+  @property
+  def world_model(self) -> WorldModel:
+    return self.trainer.world_model
+
+
+def _set_up(config: ml_collections.ConfigDict, is_chief: bool) -> _Setup:
+  """Phase 1: data, mesh and model checked against each other, and the step compiled and fitted
+  to the device's memory (the analytic estimate is only a hint beside XLA's figure)."""
   data = build_data(config, evaluation=config.train.eval_every > 0)
   mesh = parallel.make_mesh(config.mesh)
   parallel.check_batch_divisible(config.batch_size, mesh, processes=jax.process_count(),
@@ -275,24 +288,87 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
   frame_shape, frames = tuple(config.frame_shape), config.data.frames
   parallel.check_shardable(
       jax.eval_shape(lambda: world_model.init(jax.random.key(0), frame_shape, frames)), mesh)
-  # the step is compiled, checked against the device's memory (and refitted) before any state
-  # exists; the analytic estimate is only a hint beside XLA's figure
   say = functools.partial(print, flush=True) if is_chief else lambda *_: None
   say(f"hint: analytic {memory.describe(memory.estimate(config, jax.device_count()))}")
   config, trainer, _ = fit.fit_for_training(config, log=say)
-  world_model = trainer.world_model
+  return _Setup(config, data, mesh, trainer, say)
+
+
+class _RunLog:
+  """The chief's outputs of a run in ``workdir``: ``config.json``, the metrics log (cut back to
+  the step resumed from), TensorBoard events; other processes write nothing."""
+
+  def __init__(self, workdir: str, config: ml_collections.ConfigDict, start: int,
+               is_chief: bool):
+    from tensorboardX import SummaryWriter
+    self.workdir, self.is_chief = workdir, is_chief
+    self.writer = self._log = None
+    if not is_chief:
+      return
+    with open(os.path.join(workdir, "config.json"), "w") as f:
+      f.write(config.to_json(indent=2))
+    truncate_metrics_log(workdir, start)
+    # events of an earlier attempt past the resumed step are hidden from TensorBoard
+    self.writer = SummaryWriter(os.path.join(workdir, "tensorboard"), purge_step=start)
+    self._log = open(os.path.join(workdir, METRICS_LOG), "a")
+
+  def training(self, step: int, scalars: dict, batch: dict) -> None:
+    if self.is_chief:
+      for key, value in scalars.items():
+        self.writer.add_scalar(f"train/{key}", value, step)
+      self._log.write(json.dumps({"step": step, **scalars,
+                                  "batch": _batch_fingerprint(batch)}) + "\n")
+      self._log.flush()
+
+  def evaluation(self, step: int, result: dict, truth, predicted, samples: str) -> None:
+    if self.is_chief:
+      for key, value in result.items():
+        self.writer.add_scalar(f"eval/{key}", value, step)
+      write_samples(samples, truth, predicted)
+
+  def close(self) -> None:
+    for handle in (self.writer, self._log):
+      if handle is not None:
+        handle.close()
+
+
+def _stop_message(checkpoints: Checkpointer, config: ml_collections.ConfigDict,
+                  problem: str) -> str:
+  """Why training stopped, what is kept, and what to change before rerunning."""
+  checkpoints.wait()
+  kept = (f"The last good checkpoint (step {checkpoints.last_saved}) in "
+          f"{checkpoints.directory} is intact" if checkpoints.last_saved is not None else
+          f"No checkpoint was saved yet in {checkpoints.directory}")
+  clip = config.optim.grad_clip
+  return (f"{problem}; training stopped. {kept}. Lower optim.learning_rate (now "
+          f"{config.optim.learning_rate:g}) or clip gradients harder (a smaller "
+          f"optim.grad_clip: now {clip:g}{', 0 = off' if not clip else ''}) and rerun"
+          + (" with --allow_config_change=optim" if checkpoints.last_saved is not None
+             else "") + ".")
+
+
+def _train(config: ml_collections.ConfigDict, workdir: str,
+           allow: tuple[str, ...]) -> tuple[Any, dict]:
+  """The phases of a run: set up (:func:`_set_up`), restore or initialise the state, the steps
+  (logging, checkpoints, evaluation, a signal's stop), the final save and evaluation."""
+  from tqdm import tqdm
+
+  is_chief = jax.process_index() == 0
+  run = _set_up(config, is_chief)
+  config, data, world_model = run.config, run.data, run.world_model
   config_dict, stats_dict = json.loads(config.to_json()), data.stats_dict()
   num_steps, train_cfg = config.train.num_steps, config.train
   # RGB batches -> latents on the device (unless they were pre-encoded)
   encode_frames = not data.latents and not isinstance(data.codec, PixelCodec)
   encode_key = jax.random.key(config.seed + 1)
   checkpoints = Checkpointer(os.path.join(workdir, "checkpoints"), train_cfg.max_checkpoints)
-  writer = log = iterator = bar = None
+  outputs = iterator = bar = None
   stop = _StopFlag()
   try:
-    resumed = _resume(checkpoints, trainer, config, workdir, allow, is_chief)
+    # phase 2: the state, restored or new
+    resumed = _resume(checkpoints, run.trainer, config, workdir, allow, is_chief)
     if resumed is None:
-      state, start = trainer.init(jax.random.key(config.seed)), 0
+      state, start = run.trainer.init(jax.random.key(config.seed)), 0
     else:
       state, start = resumed
       print(f"resumed from step {start} in {checkpoints.directory}", flush=True)
@@ -306,38 +382,27 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
     evaluating = train_cfg.eval_every > 0
     windows = eval_windows(data, config) if evaluating else None
     task = frame_metrics_of(data.members[0].spec.name)
-    if is_chief:
-      with open(os.path.join(workdir, "config.json"), "w") as f:
-        f.write(config.to_json(indent=2))
-      truncate_metrics_log(workdir, start)
-      # events of an earlier attempt past the resumed step are hidden from TensorBoard
-      writer = SummaryWriter(os.path.join(workdir, "tensorboard"), purge_step=start)
-      log = open(os.path.join(workdir, METRICS_LOG), "a")
+    outputs = _RunLog(workdir, config, start, is_chief)
     step = start
     step_metrics = None
 
-    def stop_message(problem: str) -> str:
-      checkpoints.wait()
-      kept = (f"The last good checkpoint (step {checkpoints.last_saved}) in "
-              f"{checkpoints.directory} is intact" if checkpoints.last_saved is not None else
-              f"No checkpoint was saved yet in {checkpoints.directory}")
-      clip = config.optim.grad_clip
-      return (f"{problem}; training stopped. {kept}. Lower optim.learning_rate (now "
-              f"{config.optim.learning_rate:g}) or clip gradients harder (a smaller "
-              f"optim.grad_clip: now {clip:g}{', 0 = off' if not clip else ''}) and rerun"
-              + (" with --allow_config_change=optim" if checkpoints.last_saved is not None
-                 else "") + ".")
-
     def save(step):
       if not bool(_all_finite(state)):
-        raise NonFiniteLossError(stop_message(
-            f"the train state at step {step} holds NaN or inf values and was not saved"))
+        raise NonFiniteLossError(_stop_message(checkpoints, config, (
+            f"the train state at step {step} holds NaN or inf values and was not saved")))
       checkpoints.save(step, state, config_dict, stats_dict)
 
     def check_finite(loss, step):
       if not np.isfinite(loss):
-        raise NonFiniteLossError(stop_message(f"loss is {loss} at step {step}"))
+        raise NonFiniteLossError(_stop_message(checkpoints, config,
+                                               f"loss is {loss} at step {step}"))
 
+    def evaluate_now(step):
+      result, truth, predicted = evaluate(world_model, state.ema_params, windows, config,
+                                          jax.random.key(step), data.codec, data.latents, task)
+      return result, truth, predicted
+
+    # phase 3: the steps
     bar = tqdm(total=num_steps, initial=start, disable=not is_chief, desc="train",
                dynamic_ncols=True)
     tick = time.perf_counter()
@@ -348,12 +413,13 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
         if stop.requested:  # the signal reached the data workers too: save what there is
           break
         raise
-      global_batch = parallel.global_batch({k: batch[k] for k in ("frames", "actions")}, mesh)
+      global_batch = parallel.global_batch({k: batch[k] for k in ("frames", "actions")},
+                                           run.mesh)
       frames = global_batch["frames"]
       if encode_frames:  # the latents keep the batch's sharding
         frames = jax.device_put(data.codec.encode(frames, jax.random.fold_in(encode_key, step)),
                                 frames.sharding)
-      state, step_metrics = trainer.step(state, frames, global_batch["actions"])
+      state, step_metrics = run.trainer.step(state, frames, global_batch["actions"])
       step += 1
       bar.update(1)
       checkpoints.poll()  # a background save that failed stops the run now
@@ -364,23 +430,14 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
         scalars["samples_per_s"] = train_cfg.log_every * config.batch_size / (now - tick)
         tick = now
         bar.set_postfix(loss=f"{scalars['loss']:.4f}")
-        if is_chief:
-          for key, value in scalars.items():
-            writer.add_scalar(f"train/{key}", value, step)
-          log.write(json.dumps({"step": step, **scalars,
-                                "batch": _batch_fingerprint(batch)}) + "\n")
-          log.flush()
+        outputs.training(step, scalars, batch)
       if step % train_cfg.checkpoint_every == 0:
         save(step)
       if evaluating and step % train_cfg.eval_every == 0 and step < num_steps:
-        result, truth, predicted = evaluate(world_model, state.ema_params, windows, config,
-                                            jax.random.key(step), data.codec, data.latents, task)
-        if is_chief:
-          for key, value in result.items():
-            writer.add_scalar(f"eval/{key}", value, step)
-          write_samples(os.path.join(workdir, "samples", f"step_{step:07d}.gif"), truth,
-                        predicted)
-          bar.write(f"step {step}: " + ", ".join(f"{k}={v:.4g}" for k, v in result.items()))
+        result, truth, predicted = evaluate_now(step)
+        outputs.evaluation(step, result, truth, predicted,
+                           os.path.join(workdir, "samples", f"step_{step:07d}.gif"))
+        bar.write(f"step {step}: " + ", ".join(f"{k}={v:.4g}" for k, v in result.items()))
     if stop.requested and step < num_steps:
       name = signal.Signals(stop.signum).name
       checkpoints.wait()
@@ -394,6 +451,7 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
       bar.write(f"{name}: {saved}; stopped before step {num_steps} (rerun the same command to "
                 f"resume)")
       return state, {"step": step, "stopped": name, "signal": int(stop.signum)}
+    # phase 4: the last save and evaluation
     checkpoints.wait()
     if step != checkpoints.last_saved:
       check_finite(float(step_metrics["loss"]), step)
@@ -402,17 +460,14 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
     bar.close()
     result = {}
     if evaluating:
-      result, truth, predicted = evaluate(world_model, state.ema_params, windows, config,
-                                          jax.random.key(num_steps), data.codec, data.latents,
-                                          task)
-      if is_chief:
-        write_samples(os.path.join(workdir, "rollout.gif"), truth, predicted)
+      result, truth, predicted = evaluate_now(num_steps)
+      outputs.evaluation(step, {}, truth, predicted, os.path.join(workdir, "rollout.gif"))
     result["step"] = step
     if is_chief:
       with open(os.path.join(workdir, "metrics.json"), "w") as f:
         json.dump(result, f, indent=2)
       for key, value in result.items():
-        writer.add_scalar(f"eval/{key}", value, step)
+        outputs.writer.add_scalar(f"eval/{key}", value, step)
     return state, result
   finally:
     stop.restore()
@@ -427,7 +482,5 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
         bar.close()
       if iterator is not None and hasattr(iterator, "close"):
         iterator.close()
-      if writer is not None:
-        writer.close()
-      if log is not None:
-        log.close()
+      if outputs is not None:
+        outputs.close()
