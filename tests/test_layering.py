@@ -3,6 +3,7 @@ each package is imported with no ``wmjax`` module loaded before it, and the ``wm
 loaded are checked against the layer order."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -113,13 +114,22 @@ def test_eval_loads_neither_train_nor_the_tasks(loaded):
   assert not [m for m in loaded["wmjax.eval"] if m.startswith(("wmjax.train", "wmjax.tasks"))]
 
 
-def test_the_registry_finds_the_built_in_tasks_without_their_import():
-  """Code below the tasks' layer never imports them; a lookup loads them."""
+def test_the_registry_finds_the_built_in_tasks_without_their_import(tmp_path):
+  """Code below the tasks' layer never imports them; a lookup loads them: task metrics,
+  rewards, and a generated dataset's directory (made on first use)."""
   found = subprocess.run([sys.executable, "-c", (
       "import sys; from wmjax import registry; assert 'wmjax.tasks' not in sys.modules; "
       "print(registry.frame_metrics_of('pusht').headline, sorted(registry.rewards()))")],
       capture_output=True, text=True, check=True).stdout.split()
   assert found[0] and "coverage" in " ".join(found[1:])
+  made = subprocess.run([sys.executable, "-c", (
+      "import sys, ml_collections; from wmjax.data.sources import dataset_dir; "
+      "assert 'wmjax.tasks' not in sys.modules; "
+      "print(dataset_dir(ml_collections.ConfigDict(dict(dataset='gridworld', "
+      f"data_dir={str(tmp_path)!r}, gridworld=dict(train_episodes=2, test_episodes=1, "
+      "episode_length=4)))))")],
+      capture_output=True, text=True, check=True).stdout.strip().splitlines()[-1]
+  assert made.startswith(str(tmp_path)) and os.path.exists(os.path.join(made, "dataset_info.json"))
 
 
 def test_a_package_loads_the_same_alone_as_after_others():
