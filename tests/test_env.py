@@ -137,3 +137,12 @@ def test_steps_compile_one_program(batch):
   for _ in range(3):
     env.step(np.zeros((batch, 1, 7), np.float32))
   assert rollout._sample_block_jit._cache_size() - before == 1
+
+
+def test_parameters_on_the_host_step_too():
+  wm, params = tiny_world_model("wpe_600m.py", "sampling.num_steps=2", frame_shape=(8, 8, 16))
+  env = WorldModelEnv(wm, jax.tree.map(np.asarray, params), context=1, horizon=1,
+                      action_stats=_stats(7), seed=0)
+  env.reset(np.zeros((2, 1, 8, 8, 16), np.float32))
+  new, *_ = env.step(np.zeros((2, 1, 7), np.float32))
+  assert new.shape == (2, 1, 8, 8, 16) and np.isfinite(np.asarray(new)).all()

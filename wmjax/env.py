@@ -131,10 +131,10 @@ class WorldModelEnv:
     divides, else beside the parameters (replicated on their mesh, or on their device)."""
     if isinstance(window.sharding, NamedSharding):
       return window.sharding
-    placed = jax.tree.leaves(self.params)[0].sharding
+    placed = getattr(jax.tree.leaves(self.params)[0], "sharding", None)  # None: host arrays
     if isinstance(placed, NamedSharding):
       return NamedSharding(placed.mesh, PartitionSpec())
-    return placed
+    return placed or window.sharding
 
   def step(self, action_chunk) -> tuple[jax.Array, np.ndarray, np.ndarray, np.ndarray, dict]:
     """Apply ``action_chunk [B, k, A]`` (raw, ``1 <= k <= horizon``): returns (the ``k`` new
