@@ -5,6 +5,7 @@ imported only for mp4, so GIFs work where it is not installed."""
 from __future__ import annotations
 
 import warnings
+from typing import Iterator
 
 import numpy as np
 from PIL import Image
@@ -20,21 +21,30 @@ def ffmpeg():
   return imageio_ffmpeg
 
 
-def read_video(path: str) -> np.ndarray:
-  """uint8 ``[T, H, W, 3]`` from an mp4 (or anything ffmpeg reads) or a GIF."""
+def iter_frames(path: str) -> Iterator[np.ndarray]:
+  """uint8 frames ``[H, W, 3]`` of an mp4 (or anything ffmpeg reads) or a GIF, decoded one at a
+  time; closing the iterator stops the decoder."""
   if path.lower().endswith(".gif"):
     with Image.open(path) as image:
-      frames = []
       for index in range(image.n_frames):
         image.seek(index)
-        frames.append(np.asarray(image.convert("RGB")))
-    return np.stack(frames)
+        yield np.asarray(image.convert("RGB"))
+    return
   reader = ffmpeg().read_frames(path)
-  with warnings.catch_warnings():
-    warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
-    meta = next(reader)
-  width, height = meta["size"]
-  return np.stack([np.frombuffer(f, np.uint8).reshape(height, width, 3) for f in reader])
+  try:
+    with warnings.catch_warnings():
+      warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
+      meta = next(reader)
+    width, height = meta["size"]
+    for frame in reader:
+      yield np.frombuffer(frame, np.uint8).reshape(height, width, 3)
+  finally:
+    reader.close()  # stops the ffmpeg process
+
+
+def read_video(path: str) -> np.ndarray:
+  """uint8 ``[T, H, W, 3]`` from an mp4 (or anything ffmpeg reads) or a GIF."""
+  return np.stack(list(iter_frames(path)))
 
 
 class VideoStream:
@@ -45,23 +55,12 @@ class VideoStream:
 
   def __init__(self, path: str):
     self.path = path
-    self._generator = None  # imageio-ffmpeg's reader (an ffmpeg process)
-    self._frames = None  # frames from self._position on
+    self._frames = None  # iter_frames(path), at frame self._position
     self._position = 0
 
   def _open(self) -> None:
     self.close()
-    if self.path.lower().endswith(".gif"):
-      self._frames = iter(read_video(self.path))
-    else:
-      reader = ffmpeg().read_frames(self.path)
-      with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
-        meta = next(reader)
-      width, height = meta["size"]
-      self._generator = reader
-      self._frames = (np.frombuffer(f, np.uint8).reshape(height, width, 3) for f in reader)
-    self._position = 0
+    self._frames, self._position = iter_frames(self.path), 0
 
   def read(self, start: int, count: int) -> np.ndarray:
     if self._frames is None or start < self._position:
@@ -80,6 +79,6 @@ class VideoStream:
     return np.stack(frames)
 
   def close(self) -> None:
-    if self._generator is not None:
-      self._generator.close()  # stops the ffmpeg process
-    self._generator = self._frames = None
+    if self._frames is not None:
+      self._frames.close()
+    self._frames = None

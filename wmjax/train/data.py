@@ -18,7 +18,6 @@ import os
 import ml_collections
 import numpy as np
 
-from wmjax import tasks  # noqa: F401  (importing it registers the generated datasets)
 from wmjax.codecs import Codec, make_codec
 from wmjax.data import oxe
 from wmjax.data.latents import LatentEpisodes, codec_description
