@@ -121,6 +121,9 @@ def prepare(builder_class: type[SyntheticBuilder], data_dir: str, params) -> str
   """Write the dataset as ArrayRecord under ``data_dir`` (once, also when several processes ask
   for it at the same time); returns the builder directory."""
   data_dir = os.fspath(data_dir)
+  written = os.path.join(data_dir, builder_class.name, params.name, str(builder_class.VERSION))
+  if "://" not in data_dir and os.path.exists(os.path.join(written, "dataset_info.json")):
+    return written  # reading needs no builder (nor TensorFlow, which writing does)
   with _one_writer(data_dir, f"{builder_class.name}-{params.name}"):
     builder = builder_class(params=params, data_dir=data_dir, file_format="array_record")
     builder.download_and_prepare()
