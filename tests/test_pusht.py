@@ -103,7 +103,8 @@ def test_config_profiles():
     assert (profile.model.num_frames, profile.rollout.context, profile.rollout.horizon) == (3, 2, 1)
     assert (profile.diffusion.prediction, profile.sampling.num_steps) == ("x0", 2)
   assert (h100.model.depth, h100.model.hidden_size, h100.batch_size) == (12, 384, 64)
-  assert (h100.model.dtype, h100.data.pusht.train_episodes) == ("bfloat16", 1920)
+  assert (h100.model.dtype, h100.train.num_steps) == ("bfloat16", 3000)
+  assert h100.data.pusht == cpu.data.pusht  # one dataset: prepared once, carried to a GPU
   assert load_config(str(ROOT / "configs" / "pusht.py")).to_dict() == cpu.to_dict()
   with pytest.raises(ValueError, match="profile must be one of"):
     load_config(str(ROOT / "configs" / "pusht.py:tpu"))

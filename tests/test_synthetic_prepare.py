@@ -37,3 +37,22 @@ def test_a_built_in_dataset_before_its_task_is_imported_names_the_import(monkeyp
   monkeypatch.delitem(sources.GENERATED, "gridworld", raising=False)
   with pytest.raises(ValueError, match="`import wmjax.tasks` first"):
     sources.dataset_dir(ml_collections.ConfigDict(dict(dataset="gridworld", data_dir="/tmp")))
+
+
+def test_a_written_dataset_is_found_without_its_builder(tmp_path, monkeypatch):
+  """Reading a generated dataset again builds no TFDS builder (which needs TensorFlow, absent
+  on GPU images), and returns the directory the first prepare wrote."""
+  from wmjax.tasks.gridworld import dataset
+
+  config = dataset.GridworldConfig(image_size=8, square_size=2, episode_length=4,
+                                   train_episodes=4, test_episodes=2, seed=7)
+  written = dataset.prepare(str(tmp_path), config)
+
+  def no_builder(*args, **kwargs):
+    raise AssertionError("the builder was constructed for a dataset already written")
+
+  monkeypatch.setattr(dataset.Gridworld, "__init__", no_builder)
+  assert dataset.prepare(str(tmp_path), config) == written
+  os.remove(os.path.join(written, "dataset_info.json"))  # unfinished: prepare builds again
+  with pytest.raises(AssertionError, match="builder was constructed"):
+    dataset.prepare(str(tmp_path), config)

@@ -3,7 +3,7 @@
 # Optax, Orbax, OpenCV and the scientific stack but none of the data, config and simulator
 # packages, and no package index (Python 3.12, x86-64). Downloads them into .whl/core (data and
 # training, 11 MiB) and .whl/sim (the simulator, 17 MiB; git-ignored), so that a call can carry
-# the core wheels beside the 37 MiB dataset within the 64 MiB a call may carry. No
+# both beside the 14 MiB dataset within the 64 MiB a call may carry. No
 # imageio-ffmpeg (its wheel alone is 65 MiB): videos are written as GIF there. The device command
 # installs them with
 #   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*/*.whl

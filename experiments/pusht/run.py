@@ -24,6 +24,10 @@ One script for the whole experiment, in stages that each resume where an earlier
     JAX_PLATFORMS=cpu python experiments/pusht/run.py --profile h100 \\
         --workdir workdirs/pusht-h100 --stage data --stage classifier          # on the host
     python experiments/pusht/run.py --profile h100 --workdir workdirs/pusht-h100 --minutes 9
+    experiments/pusht/h100_device.sh workdirs/pusht-h100 5     # or: on a machine without an index
+
+The GPU machine needs no package index: ``device_wheels.sh`` downloads the wheels it lacks and
+``h100_device.sh`` installs them there, trains and runs the policy evaluation in one command.
 
 ``--config.KEY=VALUE`` overrides change the profile's config (after ``--smoke``'s), e.g.
 ``--config.train.num_steps=10000``; give the same ones to every command of a run (a changed
