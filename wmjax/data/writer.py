@@ -19,6 +19,8 @@ from typing import Any, Callable, Iterable, Mapping
 import numpy as np
 from PIL import Image
 
+from wmjax.data.videoio import VideoStream, iter_frames
+
 # One split: a callable giving (key, {"steps": [...], "episode_metadata": {...}}) pairs.
 SplitExamples = Callable[[], Iterable[tuple[Any, dict]]]
 
@@ -47,6 +49,31 @@ def episode_steps(cameras: Mapping[str, np.ndarray], actions: np.ndarray, instru
                   "language_instruction": instruction, "is_first": t == 0,
                   "is_last": t == last, "is_terminal": t == last})
   return steps
+
+
+def first_frame_shape(video: str) -> tuple[int, int]:
+  """``(H, W)`` of a video's first frame (decoding only that one)."""
+  frames = iter_frames(video)
+  try:
+    return next(frames).shape[:2]
+  finally:
+    frames.close()
+
+
+def video_steps(video: str, actions: np.ndarray, instruction: str, shape: tuple[int, int],
+                vectors: Mapping[str, np.ndarray] | None = None) -> list[dict[str, Any]]:
+  """:func:`episode_steps` of a one-camera episode whose frames are ``video``'s first
+  ``len(actions)`` (later ones left out) and must be of ``shape`` ``(H, W)``; a shorter video, or
+  another size, is an error naming the file."""
+  stream = VideoStream(video)
+  try:
+    frames = stream.read(0, len(actions))
+  finally:
+    stream.close()
+  if frames.shape[1:3] != tuple(shape):
+    raise ValueError(f"{video}: frames of {frames.shape[1:3]}, but the dataset's first video has "
+                     f"{tuple(shape)}; every video must share one size")
+  return episode_steps({"image": frames}, actions, instruction, vectors)
 
 
 def step_features(image_shapes: Mapping[str, tuple[int, int]], action_dim: int,
