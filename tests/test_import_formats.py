@@ -255,7 +255,7 @@ def test_import_inspect_train_evaluate(tmp_path, capsys, fmt):
   command[command.index("--config") + 1] = os.path.join(os.path.dirname(__file__), "..",
                                                         config_file)
   tiny = {"data.resolution": (16, 16), "frame_shape": (16, 16, 3), "model.depth": 2,
-          "model.hidden_size": 32, "model.num_heads": 2, "batch_size": 4, "data.frames": 4,
+          "model.hidden_size": 32, "model.num_heads": 2, "batch_size": 8,
           "train.num_steps": 1, "train.eval_every": 0, "data.train_split": "train",
           "data.eval_split": "test"}
   assert cli.main(command[1:] + [f"--config.{k}={v!r}" for k, v in tiny.items()]) == 0
