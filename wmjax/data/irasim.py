@@ -25,6 +25,8 @@ which ``dataset_info.json`` records as ``action_scale``. An episode of ``T`` fra
 steps; the last step's action (zeros) leads nowhere and enters neither windows nor statistics.
 RT-1 / Bridge steps also hold ``observation/state`` (the annotation's state) and
 ``observation/gripper_state``.
+The pre-encoded ``latent_videos`` are not read (they would need torch to unpickle); ``wmjax data
+encode`` makes the project's latents from the imported frames.
 
 Splits keep IRASim's names; its evaluation (``configs/evaluation/*``: ``mode: 'test'``) reads
 ``test``: the short protocol cuts 16-frame windows every 16 frames from frame 0
@@ -144,7 +146,7 @@ class IRASimDataset:
     if self.kind == "2d":
       moves = _array(annotation, "actions", path, 2) * TABLE_SCALE
       vectors = {}
-      video, latent = annotation.get("video_path"), annotation.get("latent_video_path")
+      video = annotation.get("video_path")
     else:
       state = _array(annotation, "state", path, 2)
       gripper = _array(annotation, "continuous_gripper_state", path, 1)
@@ -154,8 +156,7 @@ class IRASimDataset:
       scale = np.array([ARM_SCALE] * 6 + [GRIPPER_SCALE])
       moves = relative_actions(state, gripper) * scale
       vectors = {"state": state, "gripper_state": gripper[:, None]}
-      video = self._camera_path(annotation, "videos", "video_path", path)
-      latent = self._camera_path(annotation, "latent_videos", "latent_video_path", path)
+      video = self._video_path(annotation, path)
     if not video:
       raise ValueError(f"{path}: the annotation names no video")
     if len(moves) < 1:
@@ -165,15 +166,15 @@ class IRASimDataset:
     texts = [texts] if isinstance(texts, str) else texts
     return {"annotation": path,
             "video": os.path.join(self.src, video),
-            "latent": os.path.join(self.src, latent) if latent else None,
             "actions": actions, "vectors": vectors,
             "instruction": "; ".join(dict.fromkeys(str(t) for t in texts))}
 
-  def _camera_path(self, annotation: dict, key: str, field: str, path: str) -> str | None:
-    cameras = annotation.get(key) or []
-    if key == "videos" and len(cameras) <= self.camera:
-      raise ValueError(f"{path}: no camera {self.camera} among its {len(cameras)} {key!r}")
-    return cameras[self.camera].get(field) if len(cameras) > self.camera else None
+  def _video_path(self, annotation: dict, path: str) -> str | None:
+    """RT-1 / Bridge: the chosen camera's ``videos[camera].video_path``."""
+    cameras = annotation.get("videos") or []
+    if len(cameras) <= self.camera:
+      raise ValueError(f"{path}: no camera {self.camera} among its {len(cameras)} 'videos'")
+    return cameras[self.camera].get("video_path")
 
   @property
   def action_dim(self) -> int:
