@@ -15,6 +15,8 @@ the library and printing the result.
   wmjax data stats BUILDER_DIR [--split train] [--recompute]
   wmjax data inspect BUILDER_DIR
   wmjax data import lerobot SRC OUT [--camera KEY]
+  wmjax data import irasim SRC OUT [--dataset rt1|bridge|languagetable] [--camera N]
+  wmjax data import wpe SRC OUT [--subsets rt_1,bridge_v2]
 
 ``eval-policy`` and ``plan`` are Push-T's: they check a Push-T world model against the gym-pusht
 simulator. Config overrides use ``--config.dotted.key=value`` with Python literal values (train,

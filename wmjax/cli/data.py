@@ -68,6 +68,28 @@ def import_lerobot(args, extra) -> int:
   return 0
 
 
+def import_irasim(args, extra) -> int:
+  """Import one dataset directory of IRASim's benchmark data (annotation/<split>/*.json with the
+  videos they name; rt1, bridge or languagetable) as an RLDS dataset in ArrayRecord, splits
+  train / val / test as IRASim has them (its evaluation reads test); prints the builder
+  directory."""
+  del extra
+  from wmjax.data.irasim import import_irasim as run_import
+  print(run_import(args.src, args.out, dataset=args.dataset, camera=args.camera))
+  return 0
+
+
+def import_wpe(args, extra) -> int:
+  """Import WPE / WorldGym episodes (<subset>/<split>/NNNNNNNNN.mp4 beside NNNNNNNNN.npz, as its
+  download_data.py writes them) as an RLDS dataset in ArrayRecord, the chosen subsets pooled
+  into the splits train and test; prints the builder directory."""
+  del extra
+  from wmjax.data.wpe import import_wpe as run_import
+  subsets = [s for s in args.subsets.split(",") if s] if args.subsets else None
+  print(run_import(args.src, args.out, subsets=subsets))
+  return 0
+
+
 def _float_tuple(text: str) -> tuple[float, ...]:
   return tuple(float(part) for part in text.split(",") if part.strip())
 
@@ -136,7 +158,8 @@ def add_parser(sub) -> None:
   common.register(parser, inspect, host_only=True)
 
   parser = data_sub.add_parser("import", help="bring another format in as RLDS (ArrayRecord)",
-                               description=import_lerobot.__doc__)
+                               description="Import a LeRobot, IRASim or WPE dataset as RLDS in "
+                                           "ArrayRecord (the form training reads).")
   import_sub = parser.add_subparsers(dest="format", required=True)
   lerobot = import_sub.add_parser("lerobot", help="a local LeRobot dataset (v2.x or v3)",
                                   description=import_lerobot.__doc__)
@@ -149,3 +172,24 @@ def add_parser(sub) -> None:
   lerobot.add_argument("--action_key", default="action",
                        help="the feature stored as the action (default: action)")
   common.register(lerobot, import_lerobot, host_only=True)
+
+  irasim = import_sub.add_parser("irasim", help="an IRASim benchmark dataset (rt1, bridge, "
+                                 "languagetable)", description=import_irasim.__doc__)
+  irasim.add_argument("src", help="one dataset directory, e.g. opensource_robotdata/rt1 (with "
+                                  "annotation/<split>/*.json)")
+  irasim.add_argument("out", help="output builder directory (must not exist)")
+  irasim.add_argument("--dataset", default=None, choices=("rt1", "bridge", "droid",
+                                                          "languagetable"),
+                      help="which IRASim dataset SRC holds (default: SRC's name)")
+  irasim.add_argument("--camera", type=int, default=0,
+                      help="RT-1 / Bridge: the annotation's video stored as observation/image "
+                           "(default 0, as IRASim)")
+  common.register(irasim, import_irasim, host_only=True)
+
+  wpe = import_sub.add_parser("wpe", help="WPE / WorldGym episodes (mp4 + npz)",
+                              description=import_wpe.__doc__)
+  wpe.add_argument("src", help="download_data.py's output directory (or one subset of it)")
+  wpe.add_argument("out", help="output builder directory (must not exist)")
+  wpe.add_argument("--subsets", default=None,
+                   help="comma-separated subsets to pool, e.g. rt_1,bridge_v2 (default: all)")
+  common.register(wpe, import_wpe, host_only=True)

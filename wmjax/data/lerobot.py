@@ -20,24 +20,20 @@ back (:class:`wmjax.data.videoio.VideoStream`), holding one episode's frames per
 
 from __future__ import annotations
 
+import functools
 import glob
 import io
 import json
 import os
 import re
-import shutil
 from typing import Any
 
 import numpy as np
 from PIL import Image
 
+from wmjax.data.writer import check_out, episode_steps, step_features, write_builder
+
 VERSIONS = ("v2", "v3")
-
-
-def _png(frame: np.ndarray) -> bytes:
-  buffer = io.BytesIO()
-  Image.fromarray(frame).save(buffer, format="PNG")
-  return buffer.getvalue()
 
 
 def camera_name(key: str) -> str:
@@ -152,73 +148,39 @@ class LeRobotDataset:
     rows = self._rows[episode]
     cameras = {"image" if key == camera else camera_name(key):
                self.camera_frames(key, episode, streams) for key in self.cameras}
-    instruction, last = self.instruction(episode), len(rows) - 1
-    steps = []
-    for t, row in enumerate(rows):
-      observation = {name: _png(frames[t]) for name, frames in cameras.items()}
-      if "observation.state" in row:
-        observation["state"] = np.asarray(row["observation.state"], np.float32).reshape(-1)
-      steps.append({"observation": observation,
-                    "action": np.asarray(row[self.action_key], np.float32).reshape(-1),
-                    "language_instruction": instruction, "is_first": t == 0, "is_last": t == last,
-                    "is_terminal": t == last})
-    return steps
+    vectors = ({"state": np.asarray([r["observation.state"] for r in rows], np.float32)}
+               if "observation.state" in rows[0] else {})
+    actions = np.asarray([r[self.action_key] for r in rows], np.float32).reshape(len(rows), -1)
+    return episode_steps(cameras, actions, self.instruction(episode), vectors)
 
 
-def _builder_class(dataset: LeRobotDataset, camera: str):
-  import tensorflow_datasets as tfds
-
+def _step_features(dataset: LeRobotDataset, camera: str) -> dict[str, Any]:
   features = dataset.info["features"]
 
-  def shape(key):
-    return tuple(int(v) for v in features[key]["shape"])
+  def size(key):
+    return int(np.prod([int(v) for v in features[key]["shape"]]))
 
   def image_shape(key):
-    dims = shape(key)  # LeRobot writes [H, W, C] ("names": height, width, channels)
-    names = features[key].get("names") or []
-    if list(names)[:1] == ["channels"]:
+    dims = [int(v) for v in features[key]["shape"]]  # [H, W, C] ("names": height, width, ...)
+    if list(features[key].get("names") or [])[:1] == ["channels"]:
       dims = dims[1:] + dims[:1]
-    return (dims[0], dims[1], 3)
+    return dims[0], dims[1]
 
-  observation = {"image" if k == camera else camera_name(k):
-                 tfds.features.Image(shape=image_shape(k), encoding_format="png")
-                 for k in dataset.cameras}
-  if "observation.state" in features:
-    observation["state"] = tfds.features.Tensor(shape=(int(np.prod(shape("observation.state"))),),
-                                                dtype=np.float32)
-  step = {"observation": observation,
-          "action": tfds.features.Tensor(shape=(int(np.prod(shape(dataset.action_key))),),
-                                         dtype=np.float32),
-          "language_instruction": tfds.features.Text(),
-          "is_first": np.bool_, "is_last": np.bool_, "is_terminal": np.bool_}
+  vectors = {"state": size("observation.state")} if "observation.state" in features else {}
+  return step_features({"image" if k == camera else camera_name(k): image_shape(k)
+                        for k in dataset.cameras}, size(dataset.action_key), vectors)
 
-  def _info(self):
-    return tfds.core.DatasetInfo(
-        builder=self, description=f"LeRobot dataset {dataset.src} imported by wmjax",
-        disable_shuffling=True,  # episodes in the source's order: "the last 10 %" is the last
-        features=tfds.features.FeaturesDict({"steps": tfds.features.Dataset(step),
-                                             "episode_metadata": {"episode_id": np.int64}}),
-        metadata=tfds.core.MetadataDict(source=os.path.abspath(dataset.src), camera=camera,
-                                        action=dataset.action_key, fps=dataset.fps))
 
-  def _split_generators(self, dl_manager):
-    return {name: self._generate_examples(episodes)
-            for name, episodes in dataset.splits().items()}
-
-  def _generate_examples(self, episodes):
-    streams: dict[str, Any] = {}
-    try:
-      for episode in episodes:
-        yield episode, {"steps": dataset.steps(episode, camera, streams),
-                        "episode_metadata": {"episode_id": episode}}
-    finally:
-      for stream in streams.values():
-        stream.close()
-
-  return type("LeRobotImport", (tfds.core.GeneratorBasedBuilder,), {
-      "name": "lerobot", "VERSION": tfds.core.Version("1.0.0"), "_info": _info,
-      "_split_generators": _split_generators, "_generate_examples": _generate_examples,
-  }, skip_registration=True)
+def _examples(dataset: LeRobotDataset, camera: str, episodes: list[int]):
+  """The split's (key, episode) pairs; each camera's video stream stays open across episodes."""
+  streams: dict[str, Any] = {}
+  try:
+    for episode in episodes:
+      yield episode, {"steps": dataset.steps(episode, camera, streams),
+                      "episode_metadata": {"episode_id": episode}}
+  finally:
+    for stream in streams.values():
+      stream.close()
 
 
 def import_lerobot(src: str, out: str, camera: str | None = None,
@@ -227,19 +189,14 @@ def import_lerobot(src: str, out: str, camera: str | None = None,
   exist; written beside it first and renamed when complete); ``camera``: the feature key stored
   as ``observation/image`` (default the first camera); ``action_key``: the feature stored as the
   action. Returns ``out``."""
-  out = os.fspath(out)
-  if os.path.exists(out):
-    raise ValueError(f"{out} already exists; refusing to overwrite it")
+  out = check_out(out)
   dataset = LeRobotDataset(src, action_key)
   camera = camera or dataset.cameras[0]
   if camera not in dataset.cameras:
     raise ValueError(f"{src} has no camera {camera!r}; cameras: {dataset.cameras}")
-  tmp = out.rstrip("/") + ".incomplete"
-  shutil.rmtree(tmp, ignore_errors=True)
-  try:
-    builder = _builder_class(dataset, camera)(data_dir=tmp, file_format="array_record")
-    builder.download_and_prepare()
-    os.rename(builder.data_dir, out)
-  finally:
-    shutil.rmtree(tmp, ignore_errors=True)
-  return out
+  splits = {name: functools.partial(_examples, dataset, camera, episodes)
+            for name, episodes in dataset.splits().items()}
+  return write_builder(out, "lerobot", f"LeRobot dataset {dataset.src} imported by wmjax",
+                       _step_features(dataset, camera), splits,
+                       dict(source=os.path.abspath(dataset.src), camera=camera,
+                            action=dataset.action_key, fps=dataset.fps))

@@ -220,6 +220,12 @@ SPECS: dict[str, tuple[DatasetSpec, ...]] = {
 # `wmjax data import lerobot` output: the chosen camera is observation/image, every other camera
 # observation/<name> (data.image_key picks another).
 SPECS["lerobot"] = (DatasetSpec("lerobot", "wmjax_import"),)
+# `wmjax data import irasim` (builder irasim_<dataset>, IRASim's scaled actions) and `... wpe`
+# (WPE's 10-dim Open-X actions, the gripper at 6).
+for _name, _dim in (("rt1", 7), ("bridge", 7), ("droid", 7), ("languagetable", 2)):
+  SPECS[f"irasim_{_name}"] = (DatasetSpec(f"irasim_{_name}", "wmjax_import", action_dim=_dim,
+                                          gripper_dim=6 if _dim == 7 else None),)
+SPECS["wpe"] = (DatasetSpec("wpe", "wmjax_import", gripper_dim=6),)
 SPECS["bridge_dataset"] = tuple(dataclasses.replace(s, name="bridge_dataset")
                                 for s in SPECS["bridge"])
 

@@ -4,6 +4,7 @@ imported only for mp4, so GIFs work where it is not installed."""
 
 from __future__ import annotations
 
+import os
 import warnings
 from typing import Iterator
 
@@ -23,18 +24,26 @@ def ffmpeg():
 
 def iter_frames(path: str) -> Iterator[np.ndarray]:
   """uint8 frames ``[H, W, 3]`` of an mp4 (or anything ffmpeg reads) or a GIF, decoded one at a
-  time; closing the iterator stops the decoder."""
+  time; closing the iterator stops the decoder. A missing file is a FileNotFoundError, one ffmpeg
+  cannot open a ValueError, each naming it."""
   if path.lower().endswith(".gif"):
     with Image.open(path) as image:
       for index in range(image.n_frames):
         image.seek(index)
         yield np.asarray(image.convert("RGB"))
     return
+  if not os.path.isfile(path):
+    raise FileNotFoundError(f"no video {path}")
   reader = ffmpeg().read_frames(path)
   try:
     with warnings.catch_warnings():
       warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
-      meta = next(reader)
+      try:
+        meta = next(reader)
+      except OSError as error:  # ffmpeg's message and its whole log: keep the last line
+        lines = [line for line in str(error).splitlines() if line.strip()]
+        raise ValueError(f"{path} is not a readable video ({lines[-1] if lines else error})"
+                         ) from error
     width, height = meta["size"]
     for frame in reader:
       yield np.frombuffer(frame, np.uint8).reshape(height, width, 3)
