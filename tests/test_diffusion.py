@@ -144,6 +144,8 @@ PROCESSES = {
     "ddim-x0-eta": (GaussianDiffusion.create("cosine", prediction="x0"), "ddim", 0.5),
     "ddpm-v": (GaussianDiffusion.create("sigmoid", prediction="v"), "ddpm", 0.0),
     "euler-flow": (FlowMatching(), "euler", 0.0),
+    "pndm-x0": (GaussianDiffusion.create("linear", prediction="x0"), "pndm", 0.0),
+    "dpm_solver++-v": (GaussianDiffusion.create("sigmoid", prediction="v"), "dpm_solver++", 0.0),
 }
 
 
