@@ -1,9 +1,10 @@
 """Samplers with per-frame noise levels, scheduling matrices and classifier-free guidance.
 
 A sampling run over a window of ``h`` new frames follows a *scheduling matrix* (diffusion
-forcing): row ``i`` gives, for every new frame, an index into the process's sampling levels
-(``S`` = pure noise, ``0`` = clean). Each row-to-row transition is one network call and one
-sampler step; frames whose level does not change keep their values.
+forcing): row ``i`` gives, for every new frame, an index into the sampler's stages (``S`` = pure
+noise, ``0`` = clean; a stage is one of the process's sampling levels, and PNDM visits one of
+them twice, :meth:`SamplerConfig.stage_levels`). Each row-to-row transition is one network call
+and one sampler step; frames whose stage does not change keep their values.
 
 The multistep samplers (``pndm``, ``dpm_solver++``) keep, per frame, what their next steps need
 of the past (:func:`init_memory`) in the loop state, so with the ``autoregressive`` matrix every
@@ -180,7 +181,7 @@ class FrameSteps(NamedTuple):
   step takes it to; ``level_last``: its level one stage earlier (where PNDM's corrector restarts
   from and DPM-Solver++'s previous x0 estimate was made; meaningless at ``index == 0``);
   ``index``: how many stages of its chain the frame has taken; ``moving``: whether it takes one
-  now (frames that do not keep their value and memory).
+  now (the others keep their value and memory).
   """
 
   level_from: jax.Array
@@ -276,7 +277,8 @@ def dpm_solver_step(process: Process, x: jax.Array, memory: tuple[jax.Array, ...
   lam_from = log_snr_half(process, step.level_from)
   h = log_snr_half(process, step.level_to) - lam_from
   r = jnp.where(second, (lam_from - log_snr_half(process, step.level_last)) / h, 1.0)
-  d = x0 + jnp.where(broadcast_per_frame(second, x), (x0 - previous) / (2.0 * broadcast_per_frame(r, x)), 0.0)
+  correction = (x0 - previous) / (2.0 * broadcast_per_frame(r, x))
+  d = x0 + jnp.where(broadcast_per_frame(second, x), correction, 0.0)
   ab, ab_to = process.abar(step.level_from), process.abar(step.level_to)
   x_scale = broadcast_per_frame(jnp.sqrt((1.0 - ab_to) / (1.0 - ab)), x)
   d_scale = broadcast_per_frame(jnp.sqrt(ab_to) * -jnp.expm1(-h), x)
