@@ -119,6 +119,19 @@ def test_pndm_one_step_is_one_call_and_ddim():
   np.testing.assert_allclose(latent, ddim, rtol=1e-6)
 
 
+def test_dpm_solver_with_two_steps_is_ddim():
+  """Its first step has no previous estimate and its last goes to clean: both first order."""
+  process = GaussianDiffusion.create("sigmoid", 1000, "x0")
+  noise = jax.random.normal(jax.random.key(7), (2, 1, 5))
+  denoise = lambda x, levels: _network(jnp, x, levels[..., None].astype(jnp.float32))
+  dpm = sample_window(denoise, process, SamplerConfig("dpm_solver++", 2), noise, jax.random.key(0))
+  ddim = sample_window(denoise, process, SamplerConfig("ddim", 2), noise, jax.random.key(0))
+  three = sample_window(denoise, process, SamplerConfig("dpm_solver++", 3), noise, jax.random.key(0))
+  np.testing.assert_allclose(dpm, ddim, rtol=1e-5, atol=1e-6)
+  assert not np.allclose(three, sample_window(denoise, process, SamplerConfig("ddim", 3), noise,
+                                              jax.random.key(0)), atol=1e-4)
+
+
 @pytest.mark.parametrize("sampler", ["pndm", "dpm_solver++"])
 def test_autoregressive_matrix_gives_every_frame_its_own_chain(sampler):
   """With the autoregressive matrix each frame runs the same chain as a lone frame would, given
