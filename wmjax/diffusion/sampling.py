@@ -1,15 +1,20 @@
 """Samplers with per-frame noise levels, scheduling matrices and classifier-free guidance.
 
 A sampling run over a window of ``h`` new frames follows a *scheduling matrix* (diffusion
-forcing): row ``i`` gives, for every new frame, an index into the process's sampling levels
-(``S`` = pure noise, ``0`` = clean). Each row-to-row transition is one network call and one
-sampler step; frames whose level does not change keep their values.
+forcing): row ``i`` gives, for every new frame, an index into the sampler's stages (``S`` = pure
+noise, ``0`` = clean; a stage is one of the process's sampling levels, and PNDM visits one of
+them twice, :meth:`SamplerConfig.stage_levels`). Each row-to-row transition is one network call
+and one sampler step; frames whose stage does not change keep their values.
+
+The multistep samplers (``pndm``, ``dpm_solver++``) keep, per frame, what their next steps need
+of the past (:func:`init_memory`) in the loop state, so with the ``autoregressive`` matrix every
+frame runs its own chain of steps.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -18,7 +23,8 @@ import numpy as np
 from wmjax.diffusion.objectives import Process, broadcast_per_frame
 
 SCHEDULING_MATRICES = ("full_sequence", "pyramid", "autoregressive")
-SAMPLERS = ("ddim", "ddpm", "euler")
+SAMPLERS = ("ddim", "ddpm", "euler", "pndm", "dpm_solver++")
+MULTISTEP_SAMPLERS = ("pndm", "dpm_solver++")
 
 
 def scheduling_matrix(kind: str, num_steps: int, horizon: int) -> np.ndarray:
@@ -46,9 +52,16 @@ def scheduling_matrix(kind: str, num_steps: int, horizon: int) -> np.ndarray:
 class SamplerConfig:
   """How a window is sampled.
 
-  ``sampler`` (:data:`SAMPLERS`): ``ddim`` (deterministic at ``eta=0``, ancestral noise as
-  ``eta`` rises to 1) and ``ddpm`` (ancestral) for Gaussian processes, ``euler`` for flow
-  matching; ``num_steps`` of them per window, spaced evenly in the process's time.
+  ``sampler`` (:data:`SAMPLERS`): for Gaussian processes ``ddim`` (deterministic at ``eta=0``,
+  ancestral noise as ``eta`` rises to 1), ``ddpm`` (ancestral), ``pndm`` (pseudo linear
+  multistep on the noise estimate: diffusers' ``PNDMScheduler(skip_prk_steps=True)``,
+  :func:`pndm_step`) and ``dpm_solver++`` (DPM-Solver++ 2M: diffusers'
+  ``DPMSolverMultistepScheduler(algorithm_type="dpmsolver++", solver_order=2)``,
+  :func:`dpm_solver_step`); ``euler`` for flow matching. ``num_steps`` of them per window,
+  spaced evenly in the process's time (diffusers' ``timestep_spacing="trailing"``); ``pndm``
+  makes one more network call than it has steps (its warm-up evaluates the second level twice,
+  see :attr:`num_stages`). ``eta`` is for ``ddim`` only: the multistep samplers are
+  deterministic.
   ``matrix`` (:data:`SCHEDULING_MATRICES`, see :func:`scheduling_matrix`): ``full_sequence``
   (every new frame at one level), ``pyramid`` (each later frame a level behind) or
   ``autoregressive`` (one frame after the other). ``context_level`` is the stabilisation level
@@ -78,10 +91,27 @@ class SamplerConfig:
       raise ValueError(f"num_steps must be >= 1, got {self.num_steps}")
     if self.eta < 0:
       raise ValueError(f"eta must be >= 0, got {self.eta}")
+    if self.eta and self.sampler in MULTISTEP_SAMPLERS:
+      raise ValueError(f"eta={self.eta} is for the ddim sampler; {self.sampler!r} is deterministic "
+                       f"(set eta=0 or sampler='ddim')")
+
+  @property
+  def num_stages(self) -> int:
+    """Network calls in one frame's chain: ``num_steps``, one more for ``pndm`` (``num_steps >= 2``:
+    its first step is taken twice, an Euler predictor and a trapezoidal corrector)."""
+    return self.num_steps + int(self.sampler == "pndm" and self.num_steps > 1)
+
+  def stage_levels(self) -> np.ndarray:
+    """``[num_stages + 1]`` indices into the process's sampling levels, one per stage of a frame's
+    chain (``0`` = clean). PNDM's predictor and corrector both end at level index ``S - 1``."""
+    s = self.num_steps
+    if self.num_stages == s:
+      return np.arange(s + 1)
+    return np.concatenate([np.arange(s), [s - 1, s]])
 
   def model_calls(self, horizon: int) -> int:
     """Network evaluations per block (doubled batch when guidance is on)."""
-    return len(scheduling_matrix(self.matrix, self.num_steps, horizon)) - 1
+    return len(scheduling_matrix(self.matrix, self.num_stages, horizon)) - 1
 
 
 def _denoised(process: Process, x: jax.Array, level: jax.Array, out: jax.Array,
@@ -124,15 +154,150 @@ def euler_step(process: Process, x: jax.Array, level_from: jax.Array, level_to: 
   return jnp.where(broadcast_per_frame(level_from == level_to, x), x, new)
 
 
-def sampler_step(process: Process, config: SamplerConfig, x, level_from, level_to, out, key):
-  """One step of ``config.sampler`` (checked against the process: ddim/ddpm Gaussian, euler flow)."""
+def _check_fits(process: Process, config: SamplerConfig) -> None:
   if config.sampler not in process.samplers:
     raise ValueError(f"sampler {config.sampler!r} does not fit {type(process).__name__}; "
                      f"expected one of {process.samplers}")
+
+
+def sampler_step(process: Process, config: SamplerConfig, x, level_from, level_to, out, key):
+  """One step of a one-step sampler (ddim/ddpm Gaussian, euler flow; checked against the
+  process). The multistep samplers need their memory: :func:`sampler_update`."""
+  _check_fits(process, config)
+  if config.sampler in MULTISTEP_SAMPLERS:
+    raise ValueError(f"sampler {config.sampler!r} is a multistep method: step it with "
+                     f"sampler_update and its memory from init_memory")
   if config.sampler == "euler":
     return euler_step(process, x, level_from, level_to, out, config.clip_denoised)
   eta = 1.0 if config.sampler == "ddpm" else config.eta
   return ddim_step(process, x, level_from, level_to, out, key, eta, config.clip_denoised)
+
+
+class FrameSteps(NamedTuple):
+  """Where every frame stands in its own chain at one row-to-row transition of a scheduling
+  matrix; each field ``[B, h]`` (or ``[R, h]`` for all rows, :func:`frame_steps`).
+
+  ``level_from``: the frame's level, at which the network sees it; ``level_to``: the level the
+  step takes it to; ``level_last``: its level one stage earlier (where PNDM's corrector restarts
+  from and DPM-Solver++'s previous x0 estimate was made; meaningless at ``index == 0``);
+  ``index``: how many stages of its chain the frame has taken; ``moving``: whether it takes one
+  now (the others keep their value and memory).
+  """
+
+  level_from: jax.Array
+  level_to: jax.Array
+  level_last: jax.Array
+  index: jax.Array
+  moving: jax.Array
+
+
+def frame_steps(process: Process, config: SamplerConfig, horizon: int) -> FrameSteps:
+  """The transitions of ``config``'s scheduling matrix over ``horizon`` frames, ``[R, h]`` each."""
+  stages = config.num_stages
+  matrix = scheduling_matrix(config.matrix, stages, horizon)
+  levels = process.sampling_levels(config.num_steps)[config.stage_levels()]
+  before, after = matrix[:-1], matrix[1:]
+  return FrameSteps(levels[before], levels[after], levels[np.minimum(before + 1, stages)],
+                    stages - before, before != after)
+
+
+# PLMS weights of [eps_now, eps_-1, eps_-2, eps_-3] by a frame's stage index (4 and on: Adams-
+# Bashforth 4). Index 1 is the warm-up's corrector: the mean of the first two noise estimates.
+PLMS_WEIGHTS = np.array([[1.0, 0.0, 0.0, 0.0],
+                         [1 / 2, 1 / 2, 0.0, 0.0],
+                         [3 / 2, -1 / 2, 0.0, 0.0],
+                         [23 / 12, -16 / 12, 5 / 12, 0.0],
+                         [55 / 24, -59 / 24, 37 / 24, -9 / 24]])
+
+
+def init_memory(config: SamplerConfig, x: jax.Array) -> tuple[jax.Array, ...]:
+  """A multistep sampler's per-frame memory, zeros like ``x [B, h, ...]``: for ``pndm`` the
+  chain's start (for the warm-up's corrector) and the last three noise estimates, for
+  ``dpm_solver++`` the previous x0 estimate; empty for the one-step samplers."""
+  size = {"pndm": 4, "dpm_solver++": 1}.get(config.sampler, 0)
+  return tuple(jnp.zeros_like(x) for _ in range(size))
+
+
+def ddim_move(process: Process, x: jax.Array, level_from: jax.Array, level_to: jax.Array,
+              eps: jax.Array) -> jax.Array:
+  """Deterministic DDIM from ``level_from`` to ``level_to`` (``[B, h]``) along the noise ``eps``:
+  ``sqrt(ab') x0 + sqrt(1 - ab') eps`` with ``x0 = (x - sqrt(1 - ab) eps) / sqrt(ab)`` (PNDM's
+  transfer, formula (9) of Liu et al. 2022, is this step)."""
+  ab = broadcast_per_frame(process.abar(level_from), x)
+  x0 = (x - jnp.sqrt(1.0 - ab) * eps) / jnp.sqrt(ab)
+  return process.add_noise(x0, level_to, eps)
+
+
+def pndm_step(process: Process, x: jax.Array, memory: tuple[jax.Array, ...], step: FrameSteps,
+              out: jax.Array, clip: bool = False) -> tuple[jax.Array, tuple[jax.Array, ...]]:
+  """PLMS (pseudo linear multistep, diffusers' ``PNDMScheduler`` with ``skip_prk_steps=True``).
+
+  A frame's chain: stage 0 moves one level with its noise estimate ``e0`` (Euler) and keeps its
+  start; stage 1 evaluates the network there again and redoes that move from the start with
+  ``(e0 + e1) / 2``; later stages move with Adams-Bashforth combinations of the current and up
+  to three earlier estimates (:data:`PLMS_WEIGHTS`; the corrector's estimate is not kept).
+  ``memory = (start, eps_-1, eps_-2, eps_-3)``, each like ``x [B, h, ...]``; returns
+  ``(x', memory')`` for every frame (the caller keeps the frames that do not move).
+  """
+  start, *past = memory
+  _, eps = _denoised(process, x, step.level_from, out, clip)
+  weights = jnp.asarray(PLMS_WEIGHTS, x.dtype)[jnp.minimum(step.index, len(PLMS_WEIGHTS) - 1)]
+  combined = sum(broadcast_per_frame(weights[..., k], x) * e for k, e in enumerate([eps, *past]))
+  correcting = step.index == 1
+  source = jnp.where(broadcast_per_frame(correcting, x), start, x)
+  new = ddim_move(process, source, jnp.where(correcting, step.level_last, step.level_from),
+                  step.level_to, combined)
+  start = jnp.where(broadcast_per_frame(step.index == 0, x), x, start)
+  kept = broadcast_per_frame(correcting, x)
+  past = [jnp.where(kept, old, pushed) for old, pushed in zip(past, [eps, *past[:-1]])]
+  return new, (start, *past)
+
+
+def log_snr_half(process: Process, levels: jax.Array) -> jax.Array:
+  """DPM-Solver's ``lambda = log(alpha / sigma) = (log(ab) - log(1 - ab)) / 2`` (+inf when clean)."""
+  ab = process.abar(levels)
+  return 0.5 * (jnp.log(ab) - jnp.log1p(-ab))
+
+
+def dpm_solver_step(process: Process, x: jax.Array, memory: tuple[jax.Array, ...],
+                    step: FrameSteps, out: jax.Array, clip: bool = False
+                    ) -> tuple[jax.Array, tuple[jax.Array, ...]]:
+  """DPM-Solver++ 2M (multistep, midpoint), diffusers' ``DPMSolverMultistepScheduler`` with
+  ``algorithm_type="dpmsolver++"``, ``solver_order=2``, ``final_sigmas_type="zero"``.
+
+  With ``lambda = log(alpha / sigma)``, ``h = lambda' - lambda``, ``r = (lambda - lambda_last) / h``
+  and the x0 estimates ``D`` (now) and ``D_-1`` (the frame's previous stage):
+  ``x' = (sigma' / sigma) x + alpha' (1 - e^-h) (D + (D - D_-1) / (2 r))``. A frame's first step
+  and its last (to clean: diffusers' ``lower_order_final``) drop the correction (first order,
+  which is DDIM). ``memory = (D_-1,)`` like ``x [B, h, ...]``; returns ``(x', memory')``.
+  """
+  (previous,) = memory
+  x0, _ = _denoised(process, x, step.level_from, out, clip)
+  second = (step.index > 0) & (step.level_to != process.clean_level)
+  lam_from = log_snr_half(process, step.level_from)
+  h = log_snr_half(process, step.level_to) - lam_from
+  r = jnp.where(second, (lam_from - log_snr_half(process, step.level_last)) / h, 1.0)
+  correction = (x0 - previous) / (2.0 * broadcast_per_frame(r, x))
+  d = x0 + jnp.where(broadcast_per_frame(second, x), correction, 0.0)
+  ab, ab_to = process.abar(step.level_from), process.abar(step.level_to)
+  x_scale = broadcast_per_frame(jnp.sqrt((1.0 - ab_to) / (1.0 - ab)), x)
+  d_scale = broadcast_per_frame(jnp.sqrt(ab_to) * -jnp.expm1(-h), x)
+  return x_scale * x + d_scale * d, (x0,)
+
+
+def sampler_update(process: Process, config: SamplerConfig, x: jax.Array,
+                   memory: tuple[jax.Array, ...], step: FrameSteps, out: jax.Array,
+                   key: jax.Array) -> tuple[jax.Array, tuple[jax.Array, ...]]:
+  """One row transition of any sampler: ``x [B, h, ...]`` and its memory (:func:`init_memory`)
+  after the network output ``out`` at ``step.level_from``. Frames that do not move keep both."""
+  if config.sampler not in MULTISTEP_SAMPLERS:
+    return sampler_step(process, config, x, step.level_from, step.level_to, out, key), memory
+  _check_fits(process, config)
+  solver = pndm_step if config.sampler == "pndm" else dpm_solver_step
+  new, new_memory = solver(process, x, memory, step, out, config.clip_denoised)
+  moving = broadcast_per_frame(step.moving, x)
+  keep = lambda old, updated: jnp.where(moving, updated, old)
+  return keep(x, new), tuple(map(keep, memory, new_memory))
 
 
 def classifier_free_guidance(out_cond: jax.Array, out_null: jax.Array, scale: float) -> jax.Array:
@@ -176,16 +341,15 @@ def sample_window(denoise_fn: DenoiseFn, process: Process, config: SamplerConfig
   Returns ``[B, h, ...]``.
   """
   b, h = noise.shape[:2]
-  matrix = scheduling_matrix(config.matrix, config.num_steps, h)
-  levels = process.sampling_levels(config.num_steps)[matrix]  # [R, h]
 
-  def body(x, row):
-    level_from, level_to, step_key = row
-    level_from = jnp.broadcast_to(level_from, (b, h))
-    level_to = jnp.broadcast_to(level_to, (b, h))
-    out = denoise_fn(x, level_from)
-    return sampler_step(process, config, x, level_from, level_to, out, step_key), None
+  def body(carry, inputs):
+    x, memory = carry
+    step, step_key = inputs
+    step = FrameSteps(*(jnp.broadcast_to(a, (b, h)) for a in step))
+    out = denoise_fn(x, step.level_from)
+    return sampler_update(process, config, x, memory, step, out, step_key), None
 
-  keys = jax.random.split(key, len(levels) - 1)
-  x, _ = jax.lax.scan(body, noise, (levels[:-1], levels[1:], keys))
+  steps = frame_steps(process, config, h)
+  keys = jax.random.split(key, len(steps.index))
+  (x, _), _ = jax.lax.scan(body, (noise, init_memory(config, noise)), (steps, keys))
   return x
