@@ -4,6 +4,8 @@
 4-channel 32x40 latents (256x320 frames through the SDXL VAE), 16-frame windows, 7-dim actions.
 ``get_config('XL,rt1')`` (or ``bridge``, ``language_table``) adds the training recipe for that
 dataset: its data section and the SDXL VAE codec (``configs/rt1.py`` etc. are these).
+``get_config('XL,rt1,video_ada')`` is the Video-Ada variant (one embedding of the whole
+trajectory conditions every block) instead of Frame-Ada (``frame_ada``, the default).
 """
 
 import ml_collections
@@ -27,19 +29,25 @@ DATASETS = {
 
 SDXL_VAE_SCALING = 0.13025
 
+# variant: the model's action conditioning (wmjax.nn.dit, cond)
+VARIANTS = {"frame_ada": "frame", "video_ada": "video"}
+
 
 def get_config(arg: str = "XL") -> ml_collections.ConfigDict:
-  size, _, dataset = arg.partition(",")
+  size, dataset, variant = (arg.split(",") + ["", ""])[:3]
   if size not in SIZES:
     raise ValueError(f"IRASim size must be one of {sorted(SIZES)}, got {size!r}")
+  variant = variant or "frame_ada"
+  if variant not in VARIANTS:
+    raise ValueError(f"IRASim variant must be one of {sorted(VARIANTS)}, got {variant!r}")
   depth, hidden, heads = SIZES[size]
   config = ml_collections.ConfigDict()
-  config.name = f"irasim-{size}/2"
+  config.name = f"irasim-{size}/2" + ("-video-ada" if variant == "video_ada" else "")
   config.frame_shape = (32, 40, 4)  # what the network sees: SDXL latents of 256x320 frames
 
   config.model = model_config(
       in_channels=4, patch_size=2, depth=depth, hidden_size=hidden, num_heads=heads,
-      num_frames=16, action_dim=7, cond="frame", action_embed_ratio=4)
+      num_frames=16, action_dim=7, cond=VARIANTS[variant], action_embed_ratio=4)
   config.diffusion = ml_collections.ConfigDict(dict(
       kind="gaussian", schedule="linear", num_timesteps=1000, prediction="eps",
       regime="irasim", num_context=1))

@@ -123,11 +123,12 @@ def test_irasim_rt1_import(tmp_path, capsys):
   for e, n in enumerate((5, 4)):
     episode, extras = episodes.episode(e), states.episode(e).extras
     state, gripper = _states(e, n)
-    # the motion in the previous end-effector frame, by scipy, scaled as IRASim's c_act_scaler
+    # the motion in the previous end-effector frame, by scipy (IRASim's c_act_scaler is left to
+    # the normalisation)
     previous = Rotation.from_euler("xyz", state[:-1, 3:6])
     current = Rotation.from_euler("xyz", state[1:, 3:6])
-    expected = np.concatenate([previous.inv().apply(state[1:, :3] - state[:-1, :3]) * 20,
-                               (previous.inv() * current).as_euler("xyz") * 20,
+    expected = np.concatenate([previous.inv().apply(state[1:, :3] - state[:-1, :3]),
+                               (previous.inv() * current).as_euler("xyz"),
                                gripper[1:, None]], 1)
     np.testing.assert_allclose(episode.actions[:-1], expected, atol=1e-4)
     np.testing.assert_array_equal(episode.actions[-1], np.zeros(7))
@@ -138,8 +139,8 @@ def test_irasim_rt1_import(tmp_path, capsys):
     video = read_video(str(src / f"videos/train/{e}/rgb.mp4"))
     frames = np.stack([decode_image(b, None) for b in episode.images])
     np.testing.assert_array_equal(frames, video)  # PNG keeps the decoded video exactly
-  np.testing.assert_allclose(relative_actions(*_states(0, 5)) * ([20] * 6 + [1]),
-                             episodes.episode(0).actions[:-1], atol=1e-4)
+  np.testing.assert_allclose(relative_actions(*_states(0, 5)), episodes.episode(0).actions[:-1],
+                             atol=1e-4)
 
 
 def test_irasim_languagetable_import(tmp_path, capsys):
@@ -151,7 +152,7 @@ def test_irasim_languagetable_import(tmp_path, capsys):
   assert episodes.lengths().tolist() == [4, 6]
   for e, n in enumerate((4, 6)):
     raw = np.random.default_rng(e).normal(size=(n - 1, 2))
-    np.testing.assert_allclose(episodes.episode(e).actions[:-1], raw * 20, rtol=1e-6)
+    np.testing.assert_allclose(episodes.episode(e).actions[:-1], raw, rtol=1e-6)
     assert episodes.episode(e).instruction == ""
 
 

@@ -20,7 +20,7 @@ LAYERS = (
     ("wmjax.codecs", "wmjax.model"),
     ("wmjax.rollout", "wmjax.env", "wmjax.interactive"),
     ("wmjax.tasks",),
-    ("wmjax.train", "wmjax.eval", "wmjax.tasks.pusht.evaluate"),
+    ("wmjax.train", "wmjax.eval", "wmjax.checkpoints", "wmjax.tasks.pusht.evaluate"),
     ("wmjax.cli",),
 )
 # what may not be loaded though it sits lower: eval never imports train, and finds the tasks

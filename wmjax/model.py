@@ -107,7 +107,7 @@ class WorldModel:
     context_in, context_levels = context_inputs(self.process, self.sampler, context)
     if not self.sampler.kv_cache:
       return window_denoiser(lambda x, levels: self.denoise(params, x, levels, actions, action_mask),
-                             context_in, context_levels)
+                             context_in, context_levels, self.sampler.context_shares_level)
     conditioning = self._conditioning(actions, action_mask)
     cache = self.network.apply(params, self._twice(context_in),
                                self._twice(self.process.model_time(context_levels)), *conditioning,

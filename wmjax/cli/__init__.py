@@ -17,6 +17,7 @@ the library and printing the result.
   wmjax data import lerobot SRC OUT [--camera KEY]
   wmjax data import irasim SRC OUT [--dataset rt1|bridge|languagetable] [--camera N]
   wmjax data import wpe SRC OUT [--subsets rt_1,bridge_v2]
+  wmjax import irasim CKPT.pt --workdir DIR [--dataset rt1|bridge] [--weights ema|model] (import)
 
 ``eval-policy`` and ``plan`` are Push-T's: they check a Push-T world model against the gym-pusht
 simulator. Config overrides use ``--config.dotted.key=value`` with Python literal values (train,
@@ -39,13 +40,13 @@ DESCRIPTION = ("Action-conditioned video world models: train, evaluate and roll 
 def build_parser() -> argparse.ArgumentParser:
   """The ``wmjax`` parser with every command group's subcommands."""
   from wmjax.cli import compile as compile_
-  from wmjax.cli import data, evaluate, info, launch, pusht, rollout, train
+  from wmjax.cli import data, evaluate, importer, info, launch, pusht, rollout, train
   parser = argparse.ArgumentParser(prog="wmjax", description=DESCRIPTION)
   parser.add_argument("--debug", action="store_true",
                       help="show the traceback of an error instead of one line (anywhere "
                            "on the command line; also WMJAX_DEBUG=1)")
   sub = parser.add_subparsers(dest="command", required=True)
-  for group in (train, evaluate, rollout, pusht, launch, info, compile_, data):
+  for group in (train, evaluate, rollout, pusht, launch, info, compile_, data, importer):
     group.add_parser(sub)
   return parser
 

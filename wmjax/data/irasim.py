@@ -19,9 +19,12 @@ the videos and latents the annotation names are relative to the dataset director
   (``R_prev^T (xyz_k - xyz_prev)``, ``R_prev^T R_k`` with ``R = Rz Ry Rx``) and the gripper
   state ``k``.
 
-Actions are stored as IRASim's dataset classes give them to its model: scaled by its
-``c_act_scaler`` (20 for the arm dimensions, 1 for the gripper; 20 for Language-Table's two),
-which ``dataset_info.json`` records as ``action_scale``. An episode of ``T`` frames has ``T``
+Actions are stored unscaled, as the annotation gives them (Language-Table) or as IRASim builds
+them before its ``c_act_scaler`` (RT-1 / Bridge); ``dataset_info.json`` records that scale as
+``action_scale`` (20 for the arm dimensions, 1 for the gripper; 20 for Language-Table's two).
+IRASim's scaling is a normalisation: a checkpoint brought in by ``wmjax import irasim`` holds it
+as its action statistics (mean 0, std ``1/scale``), so its model sees exactly what IRASim's did;
+a model trained here normalises by the data's own statistics. An episode of ``T`` frames has ``T``
 steps; the last step's action (zeros) leads nowhere and enters neither windows nor statistics.
 RT-1 / Bridge steps also hold ``observation/state`` (the annotation's state) and
 ``observation/gripper_state``.
@@ -57,6 +60,11 @@ log = logging.getLogger(__name__)
 DATASETS = {"rt1": "3d", "bridge": "3d", "droid": "3d", "languagetable": "2d"}
 SPLITS = ("train", "val", "test")
 ARM_SCALE, GRIPPER_SCALE, TABLE_SCALE = 20.0, 1.0, 20.0  # IRASim's c_act_scaler
+
+
+def action_scale(kind: str) -> list[float]:
+  """IRASim's ``c_act_scaler`` per action dimension: ``kind`` '2d' (Language-Table) or '3d'."""
+  return [TABLE_SCALE] * 2 if kind == "2d" else [ARM_SCALE] * 6 + [GRIPPER_SCALE]
 
 
 def euler_to_matrix(rpy: np.ndarray) -> np.ndarray:
@@ -144,7 +152,7 @@ class IRASimDataset:
   def _episode(self, annotation: dict, path: str) -> dict[str, Any]:
     """Actions ``[T, A]`` (the last zeros), states, paths and instruction of one annotation."""
     if self.kind == "2d":
-      moves = _array(annotation, "actions", path, 2) * TABLE_SCALE
+      moves = _array(annotation, "actions", path, 2)
       vectors = {}
       video = annotation.get("video_path")
     else:
@@ -153,8 +161,7 @@ class IRASimDataset:
       if state.shape[1] < 6 or len(gripper) != len(state):
         raise ValueError(f"{path}: 'state' {state.shape} needs >= 6 columns (xyz, roll-pitch-yaw) "
                          f"and one 'continuous_gripper_state' per row (found {len(gripper)})")
-      scale = np.array([ARM_SCALE] * 6 + [GRIPPER_SCALE])
-      moves = relative_actions(state, gripper) * scale
+      moves = relative_actions(state, gripper)
       vectors = {"state": state, "gripper_state": gripper[:, None]}
       video = self._video_path(annotation, path)
     if not video:
@@ -219,7 +226,7 @@ def import_irasim(src: str, out: str, dataset: str | None = None, camera: int = 
     raise ValueError(f"{data.src}: no annotation/<split>/*.json to import")
   shape = first_frame_shape(first["video"])
   splits = {name: functools.partial(_examples, data, name, shape) for name in data.splits}
-  scale = [TABLE_SCALE] * 2 if data.kind == "2d" else [ARM_SCALE] * 6 + [GRIPPER_SCALE]
+  scale = action_scale(data.kind)
   return write_builder(out, f"irasim_{data.dataset}",
                        f"IRASim {data.dataset} data {data.src} imported by wmjax",
                        step_features({"image": shape}, data.action_dim, data.vector_dims()),

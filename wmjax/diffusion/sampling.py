@@ -71,6 +71,9 @@ class SamplerConfig:
   x0 estimate to [-1, 1] at every step (pixel-space models). ``kv_cache`` runs the context
   frames through the network once per window and keeps their temporal keys and values, so each
   step computes only the new frames (exact, and only allowed, with causal temporal attention).
+  ``context_shares_level`` tells the network the new frames' level for the context frames too
+  (IRASim's code, one timestep per sample; the context frames are still shown as
+  ``context_level`` makes them): ``full_sequence`` only, without ``kv_cache``.
   """
 
   sampler: str = "ddim"
@@ -81,6 +84,7 @@ class SamplerConfig:
   guidance_scale: float = 1.0
   clip_denoised: bool = False
   kv_cache: bool = False
+  context_shares_level: bool = False
 
   def __post_init__(self):
     if self.sampler not in SAMPLERS:
@@ -94,6 +98,10 @@ class SamplerConfig:
     if self.eta and self.sampler in MULTISTEP_SAMPLERS:
       raise ValueError(f"eta={self.eta} is for the ddim sampler; {self.sampler!r} is deterministic "
                        f"(set eta=0 or sampler='ddim')")
+    if self.context_shares_level and (self.matrix != "full_sequence" or self.kv_cache):
+      raise ValueError(f"context_shares_level needs one level for all new frames and a context "
+                       f"run at every step: matrix='full_sequence' and kv_cache=False, got "
+                       f"matrix={self.matrix!r}, kv_cache={self.kv_cache}")
 
   @property
   def num_stages(self) -> int:
@@ -318,14 +326,18 @@ def context_inputs(process: Process, config: SamplerConfig, context: jax.Array
 
 
 def window_denoiser(denoise_window: DenoiseFn, context_in: jax.Array,
-                    context_levels: jax.Array) -> DenoiseFn:
+                    context_levels: jax.Array, shared_level: bool = False) -> DenoiseFn:
   """A new-frame denoiser from one over whole windows: the fixed context is put in front of the
-  new frames ``[B, h, ...]`` and the output for the new frames is returned."""
+  new frames ``[B, h, ...]`` and the output for the new frames is returned. With
+  ``shared_level`` the context frames are given the first new frame's level instead of
+  ``context_levels [B, c]``."""
   c = context_in.shape[1]
 
   def denoise(x_new, levels_new):
     window = jnp.concatenate([context_in.astype(x_new.dtype), x_new], axis=1)
-    levels = jnp.concatenate([context_levels.astype(levels_new.dtype), levels_new], axis=1)
+    own = (jnp.broadcast_to(levels_new[:, :1], context_levels.shape) if shared_level
+           else context_levels.astype(levels_new.dtype))
+    levels = jnp.concatenate([own, levels_new], axis=1)
     return denoise_window(window, levels)[:, c:]
 
   return denoise

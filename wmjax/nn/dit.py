@@ -12,8 +12,9 @@ training, the unconditional branch of classifier-free guidance) use one learned 
 
 Conditioning modes (``cond``):
 
-* ``frame``     IRASim Frame-Ada: spatial blocks and the final layer get
-                ``temb(t_j) + aemb(a_{j-1})`` per frame; temporal blocks get ``temb(t_j)``
+* ``frame``     IRASim Frame-Ada: spatial blocks and the final layer (``temb(t_j)`` alone with
+                ``final_layer_actions=False``) get ``temb(t_j) + aemb(a_{j-1})`` per frame;
+                temporal blocks get ``temb(t_j)``
                 (plus the trajectory embedding when ``trajectory_in_temporal``).
 * ``video``     IRASim Video-Ada: one embedding of the whole flattened trajectory (zero-padded to
                 ``num_frames - 1`` actions) is added to ``temb(t_j)`` for every block.
@@ -52,6 +53,10 @@ REMAT_POLICIES = {
 # depend on relative offsets; "sincos+rope" does both, for actions that name absolute positions
 # (a target in the image) while moves are relative offsets.
 POSITIONS = ("sincos", "rope", "sincos+rope")
+# Where the temporal sin-cos embedding joins the tokens: "input", with the spatial one, before the
+# first block; "first_temporal", right before the first temporal block (IRASim's code, where a
+# spatial-first stack's first spatial block sees no frame index).
+TEMPORAL_SINCOS_AT = ("input", "first_temporal")
 
 
 class LayerStack(nn.Module):
@@ -59,7 +64,8 @@ class LayerStack(nn.Module):
 
   ``x [B, T, P, D]``, ``patch_positions [P, 2]`` -> ``(x', kv)``. ``cache`` holds every layer's
   temporal keys and values of ``Tc`` earlier frames (``[layers, B*P, Tc, H, d]`` each); with
-  ``return_kv`` ``kv`` is the same for ``x``'s frames, else None.
+  ``return_kv`` ``kv`` is the same for ``x``'s frames, else None. ``frame_pos [1, T, 1, D]`` (or
+  None) is added to the tokens right before the first layer's temporal block.
   """
 
   num_layers: int
@@ -76,7 +82,7 @@ class LayerStack(nn.Module):
 
   @nn.compact
   def __call__(self, x, spatial_cond, temporal_cond, patch_positions, cache=None,
-               return_kv: bool = False):
+               return_kv: bool = False, frame_pos=None):
     layer_cls = layers.STLayer
     if self.remat != "none":
       layer_cls = nn.remat(layer_cls, prevent_cse=not self.scan,
@@ -85,18 +91,20 @@ class LayerStack(nn.Module):
                   rope=self.rope, attention_impl=self.attention_impl, dtype=self.dtype,
                   return_kv=return_kv, temporal_first=self.temporal_first,
                   spatial_rope=self.spatial_rope)
-    inputs = (x, spatial_cond, temporal_cond, patch_positions) + (() if cache is None else (cache,))
+    inputs = (x, spatial_cond, temporal_cond, patch_positions)
     if self.scan:
-      in_axes = (nn.broadcast,) * 3 + (() if cache is None else (0,))
+      # the scanned layers take frame_pos per layer: as given for the first, zeros for the others
+      layer_pos = None if frame_pos is None else (
+          jnp.zeros((self.num_layers,) + frame_pos.shape, frame_pos.dtype).at[0].set(frame_pos))
       stack = nn.scan(layer_cls, variable_axes={"params": 0}, split_rngs={"params": True},
-                      in_axes=in_axes, length=self.num_layers,
+                      in_axes=(nn.broadcast,) * 3 + (0, 0), length=self.num_layers,
                       metadata_params={nn.PARTITION_NAME: "layers"})
-      return stack(**kwargs, name="layers")(*inputs)
+      return stack(**kwargs, name="layers")(*inputs, cache, layer_pos)
     kvs = []
     for i in range(self.num_layers):
       layer_cache = None if cache is None else jax.tree.map(lambda a: a[i], cache)
-      x, kv = layer_cls(**kwargs, name=f"layer_{i}")(x, spatial_cond, temporal_cond,
-                                                     patch_positions, layer_cache)
+      x, kv = layer_cls(**kwargs, name=f"layer_{i}")(x, *inputs[1:], layer_cache,
+                                                     frame_pos if i == 0 else None)
       kvs.append(kv)
     return x, (jax.tree.map(lambda *a: jnp.stack(a), *kvs) if return_kv else None)
 
@@ -122,6 +130,12 @@ class STDiT(nn.Module):
   temporal_first: bool = False  # each layer: temporal block, then spatial (default spatial first)
   temporal_pos: str = "sincos"  # a key of POSITIONS, across frames
   spatial_pos: str = "sincos"  # a key of POSITIONS, over the patch grid
+  # where the temporal sin-cos embedding is added: a key of TEMPORAL_SINCOS_AT
+  temporal_sincos_at: str = "input"
+  spatial_sincos_columns_first: bool = False  # the column in the first half (IRASim's code)
+  # cond='frame': the final layer is conditioned on the action embedding too (False: on the
+  # timestep only, as IRASim's published Frame-Ada checkpoints were trained, final_frame_ada=False)
+  final_layer_actions: bool = True
   attention_impl: str | None = "xla"  # a backend of wmjax.nn.attention (None: xla)
   dtype: str = "float32"  # compute dtype; parameters are always float32
   scan_layers: bool = True
@@ -133,6 +147,9 @@ class STDiT(nn.Module):
     for field in ("temporal_pos", "spatial_pos"):
       if getattr(self, field) not in POSITIONS:
         raise ValueError(f"{field} must be one of {POSITIONS}, got {getattr(self, field)!r}")
+    if self.temporal_sincos_at not in TEMPORAL_SINCOS_AT:
+      raise ValueError(f"temporal_sincos_at must be one of {TEMPORAL_SINCOS_AT}, got "
+                       f"{self.temporal_sincos_at!r}")
     if self.action_encoding not in ACTION_ENCODINGS:
       raise ValueError(f"action_encoding must be one of {ACTION_ENCODINGS}, got "
                        f"{self.action_encoding!r}")
@@ -254,7 +271,7 @@ class STDiT(nn.Module):
     if self.cond == "per_frame":
       return spatial, spatial, spatial
     temporal = temb + traj_emb if traj_emb is not None else temb
-    return spatial, temporal, spatial
+    return spatial, temporal, spatial if self.final_layer_actions else temb
 
   # ------------------------------------------------------------------------- forward
 
@@ -322,15 +339,19 @@ class STDiT(nn.Module):
     tokens = self.patch_embed(x.astype(dtype))  # [B, m, P, D]
     pos = np.zeros((1, 1, 1, self.hidden_size))
     if "sincos" in self.spatial_pos:
-      pos = pos + layers.sincos_2d(self.hidden_size, gh, gw)[None, None]
+      pos = pos + layers.sincos_2d(self.hidden_size, gh, gw,
+                                   self.spatial_sincos_columns_first)[None, None]
+    frame_pos = None
     if "sincos" in self.temporal_pos:
-      pos = pos + layers.sincos_1d(self.hidden_size, np.arange(first, first + m))[None, :, None]
+      frame_pos = layers.sincos_1d(self.hidden_size, np.arange(first, first + m))[None, :, None]
+      if self.temporal_sincos_at == "input":
+        pos, frame_pos = pos + frame_pos, None
     tokens = tokens + pos.astype(dtype)
     rows, cols = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")
     patch_positions = jnp.asarray(np.stack([rows.reshape(-1), cols.reshape(-1)], axis=1))
 
     tokens, kv = self.blocks(tokens, spatial_cond, temporal_cond, patch_positions, cache,
-                             return_kv)
+                             return_kv, None if frame_pos is None else frame_pos.astype(dtype))
     if return_kv:
       return None, kv
     out = self.final_layer(tokens, final_cond)  # [B, m, P, p*p*C]

@@ -67,16 +67,18 @@ def sincos_1d(dim: int, positions: np.ndarray) -> np.ndarray:
   return np.concatenate([np.sin(angles), np.cos(angles)], axis=1).astype(np.float32)
 
 
-def sincos_2d(dim: int, grid_h: int, grid_w: int) -> np.ndarray:
+def sincos_2d(dim: int, grid_h: int, grid_w: int, columns_first: bool = False) -> np.ndarray:
   """Fixed 2-D sin-cos positions of a (possibly non-square) patch grid -> ``[grid_h*grid_w, dim]``.
 
-  Half of the width encodes the row, half the column (MAE / DiT convention), row-major order.
+  Half of the width encodes the row, half the column, row-major patch order. The first half is
+  the row, or with ``columns_first`` the column, as in the MAE / DiT / IRASim code, whose
+  ``np.meshgrid(grid_w, grid_h)`` puts the column first.
   """
   if dim % 4:
     raise ValueError(f"2-D sin-cos embedding needs a width divisible by 4, got {dim}")
   rows, cols = np.meshgrid(np.arange(grid_h), np.arange(grid_w), indexing="ij")
-  return np.concatenate(
-      [sincos_1d(dim // 2, rows.reshape(-1)), sincos_1d(dim // 2, cols.reshape(-1))], axis=1)
+  halves = [sincos_1d(dim // 2, rows.reshape(-1)), sincos_1d(dim // 2, cols.reshape(-1))]
+  return np.concatenate(halves[::-1] if columns_first else halves, axis=1)
 
 
 def timestep_features(t: jax.Array, dim: int = 256, max_period: float = 10000.0) -> jax.Array:
@@ -349,9 +351,10 @@ class STLayer(nn.Module):
 
   ``x [B, T, P, D]``, ``spatial_cond`` and ``temporal_cond`` ``[B, T, D]``, the ``[P, 2]`` (row,
   column) of every patch (used by the spatial block's RoPE when ``spatial_rope``), optional
-  temporal ``cache`` (see :class:`STBlock`) -> ``(x', kv)`` with ``x' [B, T, P, D]`` and ``kv`` the temporal
-  keys and values of ``x``'s frames when ``return_kv`` (else None); the ``(carry, output)`` pair is
-  what ``nn.scan`` expects.
+  temporal ``cache`` (see :class:`STBlock`), optional ``frame_pos [1, T, 1, D]`` added to the
+  tokens right before the temporal block -> ``(x', kv)`` with ``x' [B, T, P, D]`` and ``kv`` the
+  temporal keys and values of ``x``'s frames when ``return_kv`` (else None); the ``(carry,
+  output)`` pair is what ``nn.scan`` expects.
   """
 
   num_heads: int
@@ -365,17 +368,22 @@ class STLayer(nn.Module):
   spatial_rope: bool = False
 
   @nn.compact
-  def __call__(self, x, spatial_cond, temporal_cond, patch_positions, cache=None):
+  def __call__(self, x, spatial_cond, temporal_cond, patch_positions, cache=None, frame_pos=None):
     common = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio,
                   attention_impl=self.attention_impl, dtype=self.dtype)
     spatial = STBlock("spatial", rope=self.spatial_rope, **common, name="spatial")
-    temporal = STBlock("temporal", causal=self.causal, rope=self.rope, **common, name="temporal")
+    temporal_block = STBlock("temporal", causal=self.causal, rope=self.rope, **common,
+                             name="temporal")
+
+    def temporal(x):
+      return temporal_block(x if frame_pos is None else x + frame_pos, temporal_cond, cache)
+
     if self.temporal_first:
-      x, kv = temporal(x, temporal_cond, cache)
+      x, kv = temporal(x)
       x, _ = spatial(x, spatial_cond, positions=patch_positions)
     else:
       x, _ = spatial(x, spatial_cond, positions=patch_positions)
-      x, kv = temporal(x, temporal_cond, cache)
+      x, kv = temporal(x)
     return x, kv if self.return_kv else None
 
 

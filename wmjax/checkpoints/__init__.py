@@ -1,0 +1,1 @@
+"""Checkpoints of other codebases as wmjax workdirs (:mod:`wmjax.checkpoints.irasim`)."""

@@ -1,0 +1,38 @@
+"""``wmjax import``: another codebase's checkpoint as a wmjax workdir."""
+
+from __future__ import annotations
+
+from wmjax.cli import common
+
+
+def import_irasim(args, extra) -> int:
+  """Convert an IRASim checkpoint (a PyTorch .pt of bytedance/IRASim's models/irasim.py) into a
+  new workdir that evaluate, rollout and load_model read like a training workdir. The size and
+  the variant come from the weights, the dataset from the path (IRASim's release layout
+  DATASET/checkpoints/VARIANT/STEP.pt) unless named. Needs PyTorch (pip install 'wmjax[irasim]')."""
+  from wmjax.checkpoints import irasim
+
+  config = irasim.import_checkpoint(args.checkpoint, args.workdir, dataset=args.dataset,
+                                    variant=args.variant, weights=args.weights,
+                                    config_path=args.config or irasim.DEFAULT_CONFIG)
+  print(f"{args.checkpoint} ({args.weights} weights) -> {args.workdir}: {config.name}")
+  return 0
+
+
+def add_parser(sub) -> None:
+  """The ``import`` command group."""
+  parser = sub.add_parser("import", help="another codebase's checkpoint as a wmjax workdir")
+  import_sub = parser.add_subparsers(dest="format", required=True)
+  irasim = import_sub.add_parser("irasim", help="an IRASim checkpoint (.pt)",
+                                 description=import_irasim.__doc__)
+  irasim.add_argument("checkpoint", help="IRASim .pt file ({'model', 'ema', 'opt'} or a state dict)")
+  irasim.add_argument("--workdir", required=True, help="new (or empty) directory to write")
+  irasim.add_argument("--dataset", choices=["rt1", "bridge"], default=None,
+                      help="the dataset it was trained on (default: from the path)")
+  irasim.add_argument("--variant", choices=["frame_ada", "video_ada"], default=None,
+                      help="default: from the weights")
+  irasim.add_argument("--weights", choices=["ema", "model"], default="ema",
+                      help="which state dict of the file (default: the EMA)")
+  irasim.add_argument("--config", default=None,
+                      help="configs/irasim.py of a wmjax checkout (default: this checkout's)")
+  common.register(irasim, import_irasim, host_only=True)
