@@ -1,5 +1,5 @@
-"""PNDM (PLMS) and DPM-Solver++ 2M against diffusers' schedulers, step by step, and inside
-:func:`sample_window` with per-frame chains."""
+"""PNDM (PLMS, with and without its Runge-Kutta warm-up) and DPM-Solver++ 2M against diffusers'
+schedulers, step by step, and inside :func:`sample_window` with per-frame chains."""
 
 import jax
 import jax.numpy as jnp
@@ -27,8 +27,8 @@ def _diffusers_scheduler(sampler, process, num_steps):
   torch = pytest.importorskip("torch")
   schedulers = pytest.importorskip("diffusers.schedulers")
   common = dict(num_train_timesteps=process.num_timesteps, timestep_spacing="trailing")
-  if sampler == "pndm":
-    scheduler = schedulers.PNDMScheduler(skip_prk_steps=True, set_alpha_to_one=True,
+  if sampler in ("pndm", "pndm_prk"):
+    scheduler = schedulers.PNDMScheduler(skip_prk_steps=sampler == "pndm", set_alpha_to_one=True,
                                          prediction_type="epsilon", **common)
   else:
     scheduler = schedulers.DPMSolverMultistepScheduler(
@@ -56,7 +56,8 @@ def _noise_estimate(process, scheduler, sample, t, out):
 
 
 def _diffusers_chain(process, scheduler, x):
-  """(timesteps, latents after every step) of diffusers' loop from ``x``."""
+  """(timesteps, latents after every step) of diffusers' loop from ``x``: the timestep of every
+  network call and the latent it sees next."""
   torch = pytest.importorskip("torch")
   is_pndm = type(scheduler).__name__ == "PNDMScheduler"
   sample, latents = torch.from_numpy(np.array(x)), []
@@ -89,6 +90,7 @@ def _our_chain(process, config, x):
 CASES = {"pndm": [("linear", "eps", 10), ("linear", "eps", 20), ("linear", "eps", 50),
                   ("linear", "v", 20), ("linear", "x0", 20), ("sigmoid", "eps", 20),
                   ("cosine", "eps", 10)],
+         "pndm_prk": [("linear", "eps", 10), ("linear", "eps", 50), ("linear", "v", 20)],
          "dpm_solver++": [("linear", "eps", 10), ("linear", "eps", 20), ("linear", "eps", 50),
                           ("linear", "v", 20), ("sigmoid", "eps", 20), ("cosine", "v", 10),
                           ("sigmoid", "x0", 20)]}
@@ -103,7 +105,8 @@ def test_multistep_sampler_equals_diffusers_step_by_step(sampler, schedule, pred
   timesteps, expected = _diffusers_chain(process, _diffusers_scheduler(sampler, process, num_steps), x)
   levels, latents = _our_chain(process, config, x)
   np.testing.assert_array_equal(levels, timesteps)
-  assert len(latents) == config.model_calls(1) == num_steps + (sampler == "pndm")
+  extra_calls = {"pndm": 1, "pndm_prk": 9}.get(sampler, 0)
+  assert len(latents) == config.model_calls(1) == num_steps + extra_calls
   for i, (ours, theirs) in enumerate(zip(latents, expected)):
     np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5, err_msg=f"step {i}")
 
@@ -119,6 +122,17 @@ def test_pndm_one_step_is_one_call_and_ddim():
   np.testing.assert_allclose(latent, ddim, rtol=1e-6)
 
 
+@pytest.mark.parametrize("num_steps", [1, 3])
+def test_pndm_prk_below_four_steps_is_all_runge_kutta_to_clean(num_steps):
+  """diffusers' warm-up would stop short of clean below four steps; here every step is one."""
+  process = GaussianDiffusion.create("linear", 1000, "eps")
+  config = SamplerConfig(sampler="pndm_prk", num_steps=num_steps)
+  steps = frame_steps(process, config, 1)
+  assert config.model_calls(1) == 4 * num_steps
+  assert steps.level_to[-1, 0] == process.clean_level
+  np.testing.assert_array_equal(steps.level_from[::4, 0], process.sampling_levels(num_steps)[:0:-1])
+
+
 def test_dpm_solver_with_two_steps_is_ddim():
   """Its first step has no previous estimate and its last goes to clean: both first order."""
   process = GaussianDiffusion.create("sigmoid", 1000, "x0")
@@ -132,7 +146,7 @@ def test_dpm_solver_with_two_steps_is_ddim():
                                               jax.random.key(0)), atol=1e-4)
 
 
-@pytest.mark.parametrize("sampler", ["pndm", "dpm_solver++"])
+@pytest.mark.parametrize("sampler", ["pndm", "pndm_prk", "dpm_solver++"])
 def test_autoregressive_matrix_gives_every_frame_its_own_chain(sampler):
   """With the autoregressive matrix each frame runs the same chain as a lone frame would, given
   a network that treats frames independently; the result is finite and deterministic."""
@@ -152,7 +166,7 @@ def test_autoregressive_matrix_gives_every_frame_its_own_chain(sampler):
   assert len(scheduling_matrix("autoregressive", config.num_stages, 3)) - 1 == config.model_calls(3)
 
 
-@pytest.mark.parametrize("sampler", ["pndm", "dpm_solver++"])
+@pytest.mark.parametrize("sampler", ["pndm", "pndm_prk", "dpm_solver++"])
 def test_multistep_samplers_refuse_flow_matching_and_eta(sampler):
   config = SamplerConfig(sampler=sampler, num_steps=4)
   with pytest.raises(ValueError, match="does not fit FlowMatching"):

@@ -76,7 +76,7 @@ class GaussianDiffusion:
   prediction: str = "eps"
 
   clean_level = -1
-  samplers = ("ddim", "ddpm", "pndm", "dpm_solver++")
+  samplers = ("ddim", "ddpm", "pndm", "pndm_prk", "dpm_solver++")
 
   def __post_init__(self):
     if self.prediction not in PREDICTIONS:

@@ -2,13 +2,14 @@
 
 A sampling run over a window of ``h`` new frames follows a *scheduling matrix* (diffusion
 forcing): row ``i`` gives, for every new frame, an index into the sampler's stages (``S`` = pure
-noise, ``0`` = clean; a stage is one of the process's sampling levels, and PNDM visits one of
-them twice, :meth:`SamplerConfig.stage_levels`). Each row-to-row transition is one network call
-and one sampler step; frames whose stage does not change keep their values.
+noise, ``0`` = clean; a stage is one of the process's sampling levels or the midpoint of a
+step, and PNDM visits some levels more than once, :meth:`SamplerConfig.stage_levels`). Each
+row-to-row transition is one network call and one sampler step; frames whose stage does not
+change keep their values.
 
-The multistep samplers (``pndm``, ``dpm_solver++``) keep, per frame, what their next steps need
-of the past (:func:`init_memory`) in the loop state, so with the ``autoregressive`` matrix every
-frame runs its own chain of steps.
+The multistep samplers (``pndm``, ``pndm_prk``, ``dpm_solver++``) keep, per frame, what their
+next steps need of the past (:func:`init_memory`) in the loop state, so with the
+``autoregressive`` matrix every frame runs its own chain of steps.
 """
 
 from __future__ import annotations
@@ -23,8 +24,8 @@ import numpy as np
 from wmjax.diffusion.objectives import Process, broadcast_per_frame
 
 SCHEDULING_MATRICES = ("full_sequence", "pyramid", "autoregressive")
-SAMPLERS = ("ddim", "ddpm", "euler", "pndm", "dpm_solver++")
-MULTISTEP_SAMPLERS = ("pndm", "dpm_solver++")
+SAMPLERS = ("ddim", "ddpm", "euler", "pndm", "pndm_prk", "dpm_solver++")
+MULTISTEP_SAMPLERS = ("pndm", "pndm_prk", "dpm_solver++")
 
 
 def scheduling_matrix(kind: str, num_steps: int, horizon: int) -> np.ndarray:
@@ -55,12 +56,19 @@ class SamplerConfig:
   ``sampler`` (:data:`SAMPLERS`): for Gaussian processes ``ddim`` (deterministic at ``eta=0``,
   ancestral noise as ``eta`` rises to 1), ``ddpm`` (ancestral), ``pndm`` (pseudo linear
   multistep on the noise estimate: diffusers' ``PNDMScheduler(skip_prk_steps=True)``,
-  :func:`pndm_step`) and ``dpm_solver++`` (DPM-Solver++ 2M: diffusers'
+  :func:`pndm_step`), ``pndm_prk`` (the same after a pseudo Runge-Kutta warm-up of three steps
+  of four network calls each: ``PNDMScheduler(skip_prk_steps=False)``, as IRASim evaluates) and
+  ``dpm_solver++`` (DPM-Solver++ 2M: diffusers'
   ``DPMSolverMultistepScheduler(algorithm_type="dpmsolver++", solver_order=2)``,
   :func:`dpm_solver_step`); ``euler`` for flow matching. ``num_steps`` of them per window,
   spaced evenly in the process's time (diffusers' ``timestep_spacing="trailing"``); ``pndm``
-  makes one more network call than it has steps (its warm-up evaluates the second level twice,
-  see :attr:`num_stages`). ``eta`` is for ``ddim`` only: the multistep samplers are
+  makes one more network call than it has steps (its warm-up evaluates the second level twice),
+  ``pndm_prk`` nine more (50 steps: 59 calls), see :attr:`num_stages`. IRASim's scheduler config
+  says ``timestep_spacing="linspace"``: diffusers then starts its steps at the levels
+  ``round(linspace(0, T-1, S))`` (the lowest is 0, not ``T/S - 1``) while its transfers still
+  move by ``T // S``; the levels here are diffusers' ``"trailing"`` ones, and ``pndm_prk`` is
+  ``PNDMScheduler(skip_prk_steps=False, timestep_spacing="trailing", set_alpha_to_one=True)``
+  call by call when ``S`` divides ``T``. ``eta`` is for ``ddim`` only: the multistep samplers are
   deterministic.
   ``matrix`` (:data:`SCHEDULING_MATRICES`, see :func:`scheduling_matrix`): ``full_sequence``
   (every new frame at one level), ``pyramid`` (each later frame a level behind) or
@@ -104,18 +112,42 @@ class SamplerConfig:
                        f"matrix={self.matrix!r}, kv_cache={self.kv_cache}")
 
   @property
+  def runge_kutta_steps(self) -> int:
+    """Steps of ``pndm_prk``'s Runge-Kutta warm-up: diffusers' three, or every step below four
+    (where diffusers' warm-up would stop short of clean)."""
+    return min(3, self.num_steps) if self.sampler == "pndm_prk" else 0
+
+  @property
   def num_stages(self) -> int:
     """Network calls in one frame's chain: ``num_steps``, one more for ``pndm`` (``num_steps >= 2``:
-    its first step is taken twice, an Euler predictor and a trapezoidal corrector)."""
-    return self.num_steps + int(self.sampler == "pndm" and self.num_steps > 1)
+    its first step is taken twice, an Euler predictor and a trapezoidal corrector), three more
+    per Runge-Kutta step for ``pndm_prk``."""
+    return (self.num_steps + int(self.sampler == "pndm" and self.num_steps > 1)
+            + 3 * self.runge_kutta_steps)
 
   def stage_levels(self) -> np.ndarray:
-    """``[num_stages + 1]`` indices into the process's sampling levels, one per stage of a frame's
-    chain (``0`` = clean). PNDM's predictor and corrector both end at level index ``S - 1``."""
-    s = self.num_steps
-    if self.num_stages == s:
-      return np.arange(s + 1)
-    return np.concatenate([np.arange(s), [s - 1, s]])
+    """``[num_stages + 1]`` indices into :func:`half_step_levels` (``2 k``: sampling level ``k``,
+    ``2 k - 1``: the midpoint of the step from it), one per stage of a frame's chain (``0`` =
+    clean). PNDM's predictor and corrector both end at sampling level ``S - 1``; a Runge-Kutta
+    step from level ``k`` visits ``2 k, 2 k - 1, 2 k - 1, 2 k - 2``."""
+    s, rk = self.num_steps, self.runge_kutta_steps
+    if self.sampler == "pndm" and s > 1:
+      warm_up, rest = [[2 * s, 2 * s - 2]], s - 1
+    else:
+      warm_up = [[2 * k, 2 * k - 1, 2 * k - 1, 2 * k - 2] for k in range(s, s - rk, -1)]
+      rest = s - rk
+    chain = np.concatenate([*warm_up, 2 * np.arange(rest, -1, -1)])
+    return chain[::-1].astype(np.int32)
+
+  def stage_sources(self) -> np.ndarray:
+    """``[num_stages]``: for each step of a frame's chain, how many stages back the sample it
+    moves from was taken (``0``: the frame's current sample; PNDM's corrector and the later calls
+    of a Runge-Kutta step move from the sample where that step started)."""
+    sources = np.zeros(self.num_stages, np.int32)
+    sources[:4 * self.runge_kutta_steps] = np.tile(np.arange(4), self.runge_kutta_steps)
+    if self.sampler == "pndm" and self.num_steps > 1:
+      sources[1] = 1
+    return sources
 
   def model_calls(self, horizon: int) -> int:
     """Network evaluations per block (doubled batch when guidance is on)."""
@@ -186,8 +218,10 @@ class FrameSteps(NamedTuple):
   matrix; each field ``[B, h]`` (or ``[R, h]`` for all rows, :func:`frame_steps`).
 
   ``level_from``: the frame's level, at which the network sees it; ``level_to``: the level the
-  step takes it to; ``level_last``: its level one stage earlier (where PNDM's corrector restarts
-  from and DPM-Solver++'s previous x0 estimate was made; meaningless at ``index == 0``);
+  step takes it to; ``level_last``: its level one stage earlier (where DPM-Solver++'s previous
+  x0 estimate was made; meaningless at ``index == 0``); ``level_source``: the level of the
+  sample the step moves from (``level_from``, or for PNDM's corrector and the later calls of a
+  Runge-Kutta step the level where that step started, :meth:`SamplerConfig.stage_sources`);
   ``index``: how many stages of its chain the frame has taken; ``moving``: whether it takes one
   now (the others keep their value and memory).
   """
@@ -195,18 +229,33 @@ class FrameSteps(NamedTuple):
   level_from: jax.Array
   level_to: jax.Array
   level_last: jax.Array
+  level_source: jax.Array
   index: jax.Array
   moving: jax.Array
+
+
+def half_step_levels(process: Process, num_steps: int) -> np.ndarray:
+  """The process's ``num_steps + 1`` sampling levels with the midpoint of every step between
+  them, ``[2 S + 1]`` (entry ``2 k`` is sampling level ``k``). Integer midpoints round down,
+  ``t' + (t - t') // 2``: diffusers' PNDM level ``t' + T // S // 2`` when ``S`` divides ``T``."""
+  levels = process.sampling_levels(num_steps)
+  half = np.empty(2 * num_steps + 1, levels.dtype)
+  half[0::2] = levels
+  half[1::2] = levels[:-1] + np.diff(levels) / 2
+  return half
 
 
 def frame_steps(process: Process, config: SamplerConfig, horizon: int) -> FrameSteps:
   """The transitions of ``config``'s scheduling matrix over ``horizon`` frames, ``[R, h]`` each."""
   stages = config.num_stages
   matrix = scheduling_matrix(config.matrix, stages, horizon)
-  levels = process.sampling_levels(config.num_steps)[config.stage_levels()]
+  levels = half_step_levels(process, config.num_steps)[config.stage_levels()]
   before, after = matrix[:-1], matrix[1:]
-  return FrameSteps(levels[before], levels[after], levels[np.minimum(before + 1, stages)],
-                    stages - before, before != after)
+  index = stages - before
+  back = np.append(config.stage_sources(), 0)[index]
+  return FrameSteps(level_from=levels[before], level_to=levels[after],
+                    level_last=levels[np.minimum(before + 1, stages)],
+                    level_source=levels[before + back], index=index, moving=before != after)
 
 
 # PLMS weights of [eps_now, eps_-1, eps_-2, eps_-3] by a frame's stage index (4 and on: Adams-
@@ -216,13 +265,35 @@ PLMS_WEIGHTS = np.array([[1.0, 0.0, 0.0, 0.0],
                          [3 / 2, -1 / 2, 0.0, 0.0],
                          [23 / 12, -16 / 12, 5 / 12, 0.0],
                          [55 / 24, -59 / 24, 37 / 24, -9 / 24]])
+# The four calls of a Runge-Kutta step (at t, t - h/2, t - h/2, t - h) in its noise estimate.
+RUNGE_KUTTA_WEIGHTS = np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6])
+
+
+def pndm_weights(config: SamplerConfig) -> np.ndarray:
+  """``[num_stages + 1, 6]``, a row per step of a frame's chain (the last for finished frames):
+  the weights of ``[eps, eps_-1, eps_-2, eps_-3, rk]`` in the noise estimate the step moves with,
+  ``rk`` being the Runge-Kutta sum after the step, and the weight with which ``eps`` joins it.
+  ``pndm``: :data:`PLMS_WEIGHTS`; ``pndm_prk``: a Runge-Kutta step's first three calls move with
+  their own estimate, its last with the sum, then Adams-Bashforth 4 (the warm-up left three
+  estimates, each step's first)."""
+  rk = config.runge_kutta_steps
+  rows = np.zeros((config.num_stages + 1, 6))
+  if rk:
+    rows[:4 * rk, 0] = np.tile([1.0, 1.0, 1.0, 0.0], rk)
+    rows[3:4 * rk:4, 4] = 1.0
+    rows[:4 * rk, 5] = np.tile(RUNGE_KUTTA_WEIGHTS, rk)
+    rows[4 * rk:-1, :4] = PLMS_WEIGHTS[-1]
+  else:
+    rows[:-1, :4] = PLMS_WEIGHTS[np.minimum(np.arange(config.num_stages), len(PLMS_WEIGHTS) - 1)]
+  return rows
 
 
 def init_memory(config: SamplerConfig, x: jax.Array) -> tuple[jax.Array, ...]:
   """A multistep sampler's per-frame memory, zeros like ``x [B, h, ...]``: for ``pndm`` the
-  chain's start (for the warm-up's corrector) and the last three noise estimates, for
+  sample its corrector restarts from and the last three noise estimates, for ``pndm_prk`` the
+  same (the sample a Runge-Kutta step started from) and the Runge-Kutta sum, for
   ``dpm_solver++`` the previous x0 estimate; empty for the one-step samplers."""
-  size = {"pndm": 4, "dpm_solver++": 1}.get(config.sampler, 0)
+  size = {"pndm": 4, "pndm_prk": 5, "dpm_solver++": 1}.get(config.sampler, 0)
   return tuple(jnp.zeros_like(x) for _ in range(size))
 
 
@@ -237,28 +308,38 @@ def ddim_move(process: Process, x: jax.Array, level_from: jax.Array, level_to: j
 
 
 def pndm_step(process: Process, x: jax.Array, memory: tuple[jax.Array, ...], step: FrameSteps,
-              out: jax.Array, clip: bool = False) -> tuple[jax.Array, tuple[jax.Array, ...]]:
-  """PLMS (pseudo linear multistep, diffusers' ``PNDMScheduler`` with ``skip_prk_steps=True``).
+              out: jax.Array, weights: np.ndarray, clip: bool = False
+              ) -> tuple[jax.Array, tuple[jax.Array, ...]]:
+  """PNDM, diffusers' ``PNDMScheduler``: PLMS (``pndm``, ``skip_prk_steps=True``) or PLMS after
+  a pseudo Runge-Kutta warm-up (``pndm_prk``, ``skip_prk_steps=False``); ``weights`` is
+  :func:`pndm_weights` of the sampler.
 
-  A frame's chain: stage 0 moves one level with its noise estimate ``e0`` (Euler) and keeps its
-  start; stage 1 evaluates the network there again and redoes that move from the start with
-  ``(e0 + e1) / 2``; later stages move with Adams-Bashforth combinations of the current and up
-  to three earlier estimates (:data:`PLMS_WEIGHTS`; the corrector's estimate is not kept).
-  ``memory = (start, eps_-1, eps_-2, eps_-3)``, each like ``x [B, h, ...]``; returns
-  ``(x', memory')`` for every frame (the caller keeps the frames that do not move).
+  Every step is a PNDM transfer (:func:`ddim_move`) to ``step.level_to`` along a combination of
+  noise estimates, from the frame's sample or, where ``step.level_source`` is not the level the
+  network sees (:meth:`SamplerConfig.stage_sources`), from the sample kept where the move began.
+  PLMS: stage 0 moves one level with its estimate ``e0`` (Euler); stage 1 evaluates the network
+  there again and redoes that move with ``(e0 + e1) / 2``; later stages move with
+  Adams-Bashforth combinations of the current and up to three earlier estimates (the
+  corrector's is not kept). A Runge-Kutta step from ``t`` to ``t - h`` moves to ``t - h/2``
+  with ``e1`` (at ``t``), again with ``e2`` (at ``t - h/2``), to ``t - h`` with ``e3`` (at
+  ``t - h/2``) and with ``(e1 + 2 e2 + 2 e3 + e4) / 6`` (``e4`` at ``t - h``), all from its
+  start; ``e1`` is kept for the PLMS steps.
+  ``memory = (start, eps_-1, eps_-2, eps_-3)`` and for ``pndm_prk`` the Runge-Kutta sum, each
+  like ``x [B, h, ...]``; returns ``(x', memory')`` for every frame (the caller keeps the frames
+  that do not move).
   """
   start, *past = memory
+  past, rk_sum = past[:3], past[3:]
   _, eps = _denoised(process, x, step.level_from, out, clip)
-  weights = jnp.asarray(PLMS_WEIGHTS, x.dtype)[jnp.minimum(step.index, len(PLMS_WEIGHTS) - 1)]
-  combined = sum(broadcast_per_frame(weights[..., k], x) * e for k, e in enumerate([eps, *past]))
-  correcting = step.index == 1
-  source = jnp.where(broadcast_per_frame(correcting, x), start, x)
-  new = ddim_move(process, source, jnp.where(correcting, step.level_last, step.level_from),
-                  step.level_to, combined)
-  start = jnp.where(broadcast_per_frame(step.index == 0, x), x, start)
-  kept = broadcast_per_frame(correcting, x)
-  past = [jnp.where(kept, old, pushed) for old, pushed in zip(past, [eps, *past[:-1]])]
-  return new, (start, *past)
+  w = jnp.asarray(weights, x.dtype)[step.index]
+  per_frame = lambda a: broadcast_per_frame(a, x)
+  own = per_frame(step.level_source == step.level_from)
+  rk_sum = [jnp.where(own, 0.0, total) + per_frame(w[..., 5]) * eps for total in rk_sum]
+  combined = sum(per_frame(w[..., k]) * e for k, e in enumerate([eps, *past, *rk_sum]))
+  start = jnp.where(own, x, start)
+  new = ddim_move(process, start, step.level_source, step.level_to, combined)
+  past = [jnp.where(own, pushed, old) for old, pushed in zip(past, [eps, *past[:-1]])]
+  return new, (start, *past, *rk_sum)
 
 
 def log_snr_half(process: Process, levels: jax.Array) -> jax.Array:
@@ -301,8 +382,11 @@ def sampler_update(process: Process, config: SamplerConfig, x: jax.Array,
   if config.sampler not in MULTISTEP_SAMPLERS:
     return sampler_step(process, config, x, step.level_from, step.level_to, out, key), memory
   _check_fits(process, config)
-  solver = pndm_step if config.sampler == "pndm" else dpm_solver_step
-  new, new_memory = solver(process, x, memory, step, out, config.clip_denoised)
+  if config.sampler == "dpm_solver++":
+    new, new_memory = dpm_solver_step(process, x, memory, step, out, config.clip_denoised)
+  else:
+    new, new_memory = pndm_step(process, x, memory, step, out, pndm_weights(config),
+                                config.clip_denoised)
   moving = broadcast_per_frame(step.moving, x)
   keep = lambda old, updated: jnp.where(moving, updated, old)
   return keep(x, new), tuple(map(keep, memory, new_memory))
