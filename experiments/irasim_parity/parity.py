@@ -7,16 +7,17 @@ zero-initialised adaLN and output layers do not hide a wrong mapping), converted
 both models get the same inputs in float32:
 
 * one call: a noisy RT-1-shaped latent window, one timestep per sample, 15 actions;
-* one sampled clip: DDIM (eta 0) from the same noise with the first frame as clean context,
-  IRASim's pipeline loop (``sample/pipeline_trajectory2videogen.py``: the context frame is put back
-  after every step and the model gets one timestep for every frame) with diffusers'
-  ``DDIMScheduler`` (``timestep_spacing='trailing'``: timesteps 999, 979, ..., 19 then clean,
-  the levels wmjax's DDIM visits) against :func:`wmjax.diffusion.sample_window`.
+* one sampled clip: ``--sampler`` (DDIM with eta 0 by default; ``pndm_prk`` is the PNDM with
+  its Runge-Kutta warm-up that IRASim evaluates with) from the same noise with the first frame as
+  clean context, IRASim's pipeline loop (``sample/pipeline_trajectory2videogen.py``: the context
+  frame is put back after every step and the model gets one timestep for every frame) with
+  diffusers' scheduler at ``timestep_spacing='trailing'`` (DDIM: timesteps 999, 979, ..., 19 then
+  clean, the levels wmjax visits) against :func:`wmjax.diffusion.sample_window`.
 
 Max relative error: ``max |a - b| / max |b|`` over the output (IRASim's the reference).
 
   python experiments/irasim_parity/parity.py --irasim ~/IRASim [--sizes S,XL] [--steps 10] \
-      [--latent 32,40]
+      [--sampler ddim|pndm|pndm_prk|dpm_solver++] [--latent 32,40]
 
 ``--latent`` shrinks the latent frames (RT-1's are 32x40) to make XL/2 affordable on a CPU; the
 weights are the same shapes at any frame size.
@@ -81,24 +82,44 @@ def to_wmjax_frames(x):
   return jnp.asarray(x.numpy().transpose(0, 1, 3, 4, 2))
 
 
-def irasim_sample(model, scheduler, noise, context, actions, steps: int):
+def diffusers_scheduler(sampler: str, steps: int):
+  """diffusers' scheduler for a wmjax ``sampler`` on IRASim's linear betas, at the levels wmjax
+  visits (``timestep_spacing='trailing'``, clean end point)."""
+  import diffusers
+  common = dict(num_train_timesteps=1000, beta_start=1e-4, beta_end=0.02, beta_schedule="linear",
+                timestep_spacing="trailing", prediction_type="epsilon")
+  if sampler == "ddim":
+    scheduler = diffusers.DDIMScheduler(clip_sample=False, set_alpha_to_one=True, **common)
+  elif sampler in ("pndm", "pndm_prk"):
+    scheduler = diffusers.PNDMScheduler(skip_prk_steps=sampler == "pndm", set_alpha_to_one=True,
+                                        **common)
+  elif sampler == "dpm_solver++":
+    scheduler = diffusers.DPMSolverMultistepScheduler(
+        algorithm_type="dpmsolver++", solver_order=2, solver_type="midpoint",
+        lower_order_final=True, final_sigmas_type="zero", **common)
+  else:
+    raise SystemExit(f"--sampler must be ddim, pndm, pndm_prk or dpm_solver++, got {sampler!r}")
+  scheduler.set_timesteps(steps)
+  return scheduler
+
+
+def irasim_sample(model, scheduler, noise, context, actions):
   """IRASim's pipeline loop: ``noise [B, F, C, H, W]``, clean ``context [B, 1, C, H, W]``."""
   import torch
-  scheduler.set_timesteps(steps)
   latents = torch.cat([context, noise[:, 1:]], dim=1)
   with torch.no_grad():
     for t in scheduler.timesteps:
       out = model(latents, t[None].expand(latents.shape[0]).float(), actions=actions)
-      latents = scheduler.step(out, t, latents, eta=0.0, return_dict=False)[0]
+      latents = scheduler.step(out, t, latents, return_dict=False)[0]
       latents = torch.cat([context, latents[:, 1:]], dim=1)
   return latents
 
 
-def compare(module, size: str, variant: str, steps: int, seed: int, latent) -> dict:
+def compare(module, size: str, variant: str, sampler: str, steps: int, seed: int,
+            latent) -> dict:
   import torch
-  from diffusers import DDIMScheduler
   config = importer.import_config(size, "rt1", variant)
-  config.sampling.num_steps = steps
+  config.sampling.sampler, config.sampling.num_steps = sampler, steps
   config.frame_shape = tuple(latent) + (config.frame_shape[2],)
   world = WorldModel.from_config(config)
   frame_shape = tuple(config.frame_shape)
@@ -118,12 +139,10 @@ def compare(module, size: str, variant: str, steps: int, seed: int, latent) -> d
                              jnp.asarray(actions.numpy()))
   call_error = relative_error(np.asarray(ours), reference)
 
-  scheduler = DDIMScheduler(num_train_timesteps=1000, beta_start=1e-4, beta_end=0.02,
-                            beta_schedule="linear", clip_sample=False, set_alpha_to_one=True,
-                            timestep_spacing="trailing", prediction_type="epsilon")
+  scheduler = diffusers_scheduler(sampler, steps)
   context = torch.randn((1, 1, c, h, w), generator=generator)
   noise = torch.randn((1, 16, c, h, w), generator=generator)
-  reference_clip = irasim_sample(torch_model, scheduler, noise, context, actions, steps)
+  reference_clip = irasim_sample(torch_model, scheduler, noise, context, actions)
   reference_clip = reference_clip[:, 1:].numpy().transpose(0, 1, 3, 4, 2)
   denoise = world.new_frame_denoiser(params, to_wmjax_frames(context), jnp.asarray(actions.numpy()),
                                      jnp.ones((1, 15), bool))
@@ -131,6 +150,7 @@ def compare(module, size: str, variant: str, steps: int, seed: int, latent) -> d
                        to_wmjax_frames(noise[:, 1:]), jax.random.key(0))
   return dict(size=size, variant=variant, call=call_error,
               clip=relative_error(np.asarray(clip), reference_clip), steps=steps,
+              calls=len(scheduler.timesteps),
               seconds=time.time() - start)
 
 
@@ -139,7 +159,9 @@ def main() -> None:
   parser.add_argument("--irasim", required=True, help="an IRASim checkout (bytedance/IRASim)")
   parser.add_argument("--sizes", default="S,XL")
   parser.add_argument("--variants", default="frame_ada,video_ada")
-  parser.add_argument("--steps", type=int, default=10, help="DDIM steps of the sampled clip")
+  parser.add_argument("--sampler", default="ddim",
+                      help="ddim, pndm, pndm_prk (IRASim's evaluation sampler) or dpm_solver++")
+  parser.add_argument("--steps", type=int, default=10, help="sampler steps of the sampled clip")
   parser.add_argument("--seed", type=int, default=0)
   parser.add_argument("--latent", default="32,40", help="latent frame size H,W")
   args = parser.parse_args()
@@ -147,13 +169,14 @@ def main() -> None:
   sys.path.insert(0, os.path.expanduser(args.irasim))
   module = irasim_module(args.irasim)
   print(f"latent frames {latent}, seed {args.seed}")
-  print("| size | variant | one call: max rel. error | sampled clip: max rel. error | DDIM steps |")
+  print("| size | variant | one call: max rel. error | sampled clip: max rel. error | sampler, "
+        "steps (network calls) |")
   print("|---|---|---|---|---|")
   for size in args.sizes.split(","):
     for variant in args.variants.split(","):
-      r = compare(module, size, variant, args.steps, args.seed, latent)
+      r = compare(module, size, variant, args.sampler, args.steps, args.seed, latent)
       print(f"| {r['size']}/2 | {r['variant']} | {r['call']:.2e} | {r['clip']:.2e} | "
-            f"{r['steps']} |", flush=True)
+            f"{args.sampler}, {r['steps']} ({r['calls']}) |", flush=True)
       print(f"<!-- {r['seconds']:.0f} s -->", file=sys.stderr, flush=True)
 
 

@@ -11,7 +11,8 @@ The config is ``configs/irasim.py:SIZE,DATASET,VARIANT`` with what IRASim's code
 defaults differ (:data:`CODE_OPTIONS`): the 2-D sin-cos positions put the column first, the
 temporal sin-cos embedding joins before the first temporal block, Frame-Ada's final layer sees
 the timestep only (the published checkpoints were trained with ``final_frame_ada=False``), and
-sampling shows the clean context frame at the new frames' timestep. The action statistics are
+sampling shows the clean context frame at the new frames' timestep, with IRASim's evaluation
+sampler (PNDM with its Runge-Kutta warm-up, 50 steps). The action statistics are
 IRASim's fixed scaling (``c_act_scaler``: x20 for the arm, x1 for the gripper) written as a
 mean 0 / std ``1/scale`` normalisation; they were not measured (``count`` 0), and ``min`` /
 ``max`` / ``p01`` / ``p99`` are the raw range ``[-1/scale, 1/scale]`` that the scaling maps to
@@ -63,7 +64,8 @@ from wmjax.nn import layers
 # What IRASim's code does where wmjax's defaults differ (see the module docstring).
 CODE_OPTIONS = ("model.spatial_sincos_columns_first=True",
                 "model.temporal_sincos_at='first_temporal'",
-                "sampling.context_level=-1", "sampling.context_shares_level=True")
+                "sampling.context_level=-1", "sampling.context_shares_level=True",
+                "sampling.sampler='pndm_prk'")  # 50 steps, 59 calls: IRASim's evaluation
 FRAME_ADA_OPTIONS = ("model.final_layer_actions=False",)
 # IRASim's dataset names -> configs/irasim.py's; the action scale of each (c_act_scaler) and its
 # gripper dimension.
