@@ -13,13 +13,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
-import io
 import os
 from typing import Any, Iterator
 
 import numpy as np
 import tensorflow_datasets as tfds
-from PIL import Image
+
+from wmjax.data.writer import png
 
 
 @dataclasses.dataclass
@@ -32,12 +32,6 @@ class GeneratedEpisode:
   instruction: str
   rewards: np.ndarray
   observations: dict[str, np.ndarray]
-
-
-def png(frame: np.ndarray) -> bytes:
-  buffer = io.BytesIO()
-  Image.fromarray(frame).save(buffer, format="PNG")
-  return buffer.getvalue()
 
 
 class SyntheticBuilder(tfds.core.GeneratorBasedBuilder):
