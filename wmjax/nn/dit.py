@@ -137,6 +137,9 @@ class STDiT(nn.Module):
   # timestep only, as IRASim's published Frame-Ada checkpoints were trained, final_frame_ada=False)
   final_layer_actions: bool = True
   attention_impl: str | None = "xla"  # a backend of wmjax.nn.attention (None: xla)
+  # fused kernels (wmjax.nn.kernels): one of KERNEL_IMPLS each, 'xla' | 'pallas' | 'auto'
+  mlp_kernel: str = "xla"  # Linear -> GELU -> Linear with the GELU in the matmuls' epilogues
+  norm_kernel: str = "xla"  # LayerNorm -> adaLN modulate in one pass
   dtype: str = "float32"  # compute dtype; parameters are always float32
   scan_layers: bool = True
   remat: str = "none"  # a key of REMAT_POLICIES

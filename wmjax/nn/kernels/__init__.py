@@ -1,0 +1,40 @@
+"""Fused GPU kernels (Pallas, Triton backend) for the ST-DiT's bandwidth-bound steps.
+
+Each kernel has a pure-JAX reference beside it and is chosen by a model field that takes one of
+:data:`KERNEL_IMPLS`:
+
+``xla``     the plain JAX ops; XLA fuses what it can (every platform; the default).
+``pallas``  the fused kernel. On a GPU it is compiled by Triton; elsewhere it runs in Pallas
+            interpret mode, exact but slow (for tests and CPU checks, not for speed).
+``auto``    ``pallas`` on a GPU, ``xla`` elsewhere.
+
+Under a device mesh (the trainer's ``jax.set_mesh``) a kernel runs once per device through
+``shard_map`` (XLA cannot partition a Pallas call): rows are split over the batch axes and the
+hidden width over ``tensor``.
+"""
+
+from __future__ import annotations
+
+from wmjax.nn.attention import current_platform
+
+KERNEL_IMPLS = ("xla", "pallas", "auto")
+
+
+def check_kernel(field: str, name: str) -> None:
+  """ValueError for a kernel choice that does not exist (``field`` names the model setting)."""
+  if name not in KERNEL_IMPLS:
+    raise ValueError(f"{field} must be one of {KERNEL_IMPLS}, got {name!r}")
+
+
+def resolve_kernel(field: str, name: str, platform: str | None = None) -> str:
+  """'xla' or 'pallas': ``auto`` resolved for ``platform`` (default: the platform attention is
+  built for, :func:`wmjax.nn.attention.current_platform`)."""
+  check_kernel(field, name)
+  if name == "auto":
+    return "pallas" if (platform or current_platform()) == "gpu" else "xla"
+  return name
+
+
+def interpret(platform: str | None = None) -> bool:
+  """Whether a Pallas kernel runs in interpret mode: everywhere but on a GPU."""
+  return (platform or current_platform()) != "gpu"
