@@ -161,19 +161,28 @@ def _splash(q, k, v, causal):
   """Splash attention; under a mesh context (``jax.set_mesh``, as the trainer and sharded
   rollouts set) one kernel per device through ``shard_map``: XLA cannot partition a Pallas call.
   The sequences' leading axis (batch-major) is split over the batch axes, heads over ``tensor``."""
+  batch, heads = split_axes(q.shape[0], q.shape[2])
+  if batch is None and heads is None:
+    return _splash_local(q, k, v, causal)
+  spec = PartitionSpec(batch, None, heads, None)
+  local = functools.partial(_splash_local, causal=causal)
+  return jax.shard_map(local, mesh=jax.sharding.get_abstract_mesh(), in_specs=(spec, spec, spec),
+                       out_specs=spec, check_vma=False)(q, k, v)
+
+
+def split_axes(leading: int, split: int | None = None):
+  """How a Pallas call (which XLA cannot partition) is split under the current mesh (``jax.set_mesh``,
+  as the trainer and sharded rollouts set): the mesh's batch axes (:data:`BATCH_AXES` of size > 1)
+  that evenly split a ``leading`` (batch-major) axis, or None; ``'tensor'`` when it has size > 1
+  and evenly splits ``split`` (heads, hidden width), else None. Both None off a mesh."""
   mesh = jax.sharding.get_abstract_mesh()
   names = mesh.axis_names if not mesh.empty else ()
   batch = tuple(a for a in BATCH_AXES if a in names and mesh.shape[a] > 1)
-  if batch and q.shape[0] % math.prod(mesh.shape[a] for a in batch):
+  if batch and leading % math.prod(mesh.shape[a] for a in batch):
     batch = ()
-  heads = "tensor" if ("tensor" in names and mesh.shape["tensor"] > 1
-                       and q.shape[2] % mesh.shape["tensor"] == 0) else None
-  if not batch and heads is None:
-    return _splash_local(q, k, v, causal)
-  spec = PartitionSpec(batch or None, None, heads, None)
-  local = functools.partial(_splash_local, causal=causal)
-  return jax.shard_map(local, mesh=mesh, in_specs=(spec, spec, spec), out_specs=spec,
-                       check_vma=False)(q, k, v)
+  tensor = "tensor" if (split is not None and "tensor" in names and mesh.shape["tensor"] > 1
+                        and split % mesh.shape["tensor"] == 0) else None
+  return batch or None, tensor
 
 
 def _splash_local(q, k, v, causal):

@@ -30,6 +30,8 @@ import numpy as np
 from einops import rearrange
 
 from wmjax.nn.attention import attend
+from wmjax.nn.kernels import resolve_kernel
+from wmjax.nn.kernels.mlp import mlp as fused_mlp
 from wmjax.parallel import LOGICAL_RULES, MESH_AXES
 
 Dtype = Any
@@ -207,16 +209,38 @@ def unpatchify(x: jax.Array, grid_h: int, grid_w: int, p: int) -> jax.Array:
 # --------------------------------------------------------------------------- transformer
 
 
+class DenseParams(nn.Module):
+  """The ``kernel [in, out]`` and ``bias [out]`` of an ``nn.Dense`` (same names, initialisers and
+  logical axes), for layers that do their own matmuls."""
+
+  features: int
+  axes: tuple[str, str]
+
+  @nn.compact
+  def __call__(self, in_features: int) -> tuple[jax.Array, jax.Array]:
+    return (self.param("kernel", logical(_xavier, *self.axes), (in_features, self.features)),
+            self.param("bias", logical(_zeros, self.axes[1]), (self.features,)))
+
+
 class Mlp(nn.Module):
-  """``Linear -> GELU(tanh) -> Linear``; ``[..., in] -> [..., features]``."""
+  """``Linear -> GELU(tanh) -> Linear``; ``[..., in] -> [..., features]``.
+
+  ``kernel`` (a key of :data:`wmjax.nn.kernels.KERNEL_IMPLS`): 'xla' runs ``nn.Dense`` layers,
+  'pallas' the fused kernels of :mod:`wmjax.nn.kernels.mlp` on the same parameters.
+  """
 
   features: int
   hidden: int
   in_axis: str = "embed"
   dtype: Dtype = jnp.float32
+  kernel: str = "xla"
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
+    if resolve_kernel("model.mlp_kernel", self.kernel) == "pallas":
+      w1, b1 = DenseParams(self.hidden, (self.in_axis, "mlp"), name="fc1")(x.shape[-1])
+      w2, b2 = DenseParams(self.features, ("mlp", "embed"), name="fc2")(self.hidden)
+      return fused_mlp(x.astype(self.dtype), w1, b1, w2, b2, impl=self.kernel)
     x = nn.Dense(self.hidden, dtype=self.dtype, kernel_init=logical(_xavier, self.in_axis, "mlp"),
                  bias_init=logical(_zeros, "mlp"), name="fc1")(x)
     x = nn.gelu(x, approximate=True)
@@ -316,6 +340,7 @@ class STBlock(nn.Module):
   rope: bool = False
   attention_impl: str | None = "xla"
   dtype: Dtype = jnp.float32
+  mlp_kernel: str = "xla"
 
   @nn.compact
   def __call__(self, x: jax.Array, cond: jax.Array, cache=None, positions=None):
@@ -339,8 +364,8 @@ class STBlock(nn.Module):
     else:
       raise ValueError(f"axis must be 'spatial' or 'temporal', got {self.axis!r}")
     x = x + gate_a * h
-    h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, name="mlp")(modulate(layer_norm(x), shift_m,
-                                                                           scale_m))
+    h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, kernel=self.mlp_kernel,
+            name="mlp")(modulate(layer_norm(x), shift_m, scale_m))
     return constrain(x + gate_m * h), kv
 
 
@@ -366,11 +391,12 @@ class STLayer(nn.Module):
   return_kv: bool = False
   temporal_first: bool = False
   spatial_rope: bool = False
+  mlp_kernel: str = "xla"
 
   @nn.compact
   def __call__(self, x, spatial_cond, temporal_cond, patch_positions, cache=None, frame_pos=None):
     common = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio,
-                  attention_impl=self.attention_impl, dtype=self.dtype)
+                  attention_impl=self.attention_impl, dtype=self.dtype, mlp_kernel=self.mlp_kernel)
     spatial = STBlock("spatial", rope=self.spatial_rope, **common, name="spatial")
     temporal_block = STBlock("temporal", causal=self.causal, rope=self.rope, **common,
                              name="temporal")

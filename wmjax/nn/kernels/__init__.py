@@ -15,7 +15,15 @@ hidden width over ``tensor``.
 
 from __future__ import annotations
 
-from wmjax.nn.attention import current_platform
+import math
+
+import jax
+from jax.sharding import PartitionSpec as P
+
+from wmjax.nn.attention import current_platform, split_axes
+
+__all__ = ["KERNEL_IMPLS", "P", "check_kernel", "interpret", "per_device", "resolve_kernel",
+           "split_axes"]
 
 KERNEL_IMPLS = ("xla", "pallas", "auto")
 
@@ -38,3 +46,9 @@ def resolve_kernel(field: str, name: str, platform: str | None = None) -> str:
 def interpret(platform: str | None = None) -> bool:
   """Whether a Pallas kernel runs in interpret mode: everywhere but on a GPU."""
   return (platform or current_platform()) != "gpu"
+
+
+def per_device(fn, in_specs, out_specs):
+  """``fn`` run once per device of the current mesh through ``shard_map``, with these specs."""
+  return jax.shard_map(fn, mesh=jax.sharding.get_abstract_mesh(), in_specs=in_specs,
+                       out_specs=out_specs, check_vma=False)
