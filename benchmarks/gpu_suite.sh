@@ -11,6 +11,16 @@
 #   benchmarks/gpu_suite.sh rollout  # batch-8 rollouts: frames/s at 59 calls per block (PNDM-50's
 #                                    # cost) and at DDIM-10; WPE with and without the KV cache
 #   benchmarks/gpu_suite.sh all
+#   benchmarks/gpu_suite.sh kernels-xl   # the fused kernels (wmjax.nn.kernels): the MLP kernels
+#                                        # alone at XL/2's shape (tile settings side by side),
+#                                        # then XL/2's train step and 59-call rollout with each
+#                                        # kernel off and on (about 8 minutes on one H100)
+#   benchmarks/gpu_suite.sh kernels-wpe  # the same for WPE-600M's train step and rollout
+#
+# On a machine with no package index (the lent GPU machines), carry .whl/core
+# (experiments/pusht/device_wheels.sh) and start the command with
+#   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/core/*.whl
+#   export PYTHONPATH=/tmp/site:$PWD
 #
 # Batch 16 with remat 'dots' compiles to 67.5 GiB (IRASim-XL/2) and 66.3 GiB (WPE-600M) per H100,
 # so JAX may take 95 % of the card here (its default, 75 %, is about 60 GiB); train_step.py stops
@@ -63,10 +73,42 @@ rollout() {
   done
 }
 
+# Kernel settings compared, one knob at a time: the XLA baseline, the fused MLP, then the fused
+# MLP with the fused LayerNorm-modulate. Tile settings of the MLP kernels: MLP_BLOCKS (the train
+# steps and rollouts use the first), rows,cols,depth,warps,stages each.
+MLP_BLOCKS=${MLP_BLOCKS:-"128,128,64,8,3 128,128,64,4,4 128,256,64,8,3 64,128,64,4,4"}
+KERNELS=("mlp_kernel=xla norm_kernel=xla" "mlp_kernel=pallas norm_kernel=xla"
+         "mlp_kernel=pallas norm_kernel=pallas")
+
+kernel_runs() {  # NAME CONFIG FRAMES_TRAIN ROLLOUT_ARGS...
+  local name=$1 spec=$2; shift 2
+  local blocks=(${MLP_BLOCKS})
+  for setting in "${KERNELS[@]}"; do
+    local flags=() tag=""
+    for kv in $setting; do flags+=("--config.model.$kv"); tag+="-${kv#*=}"; done
+    python benchmarks/train_step.py --config "$spec" "${fast[@]}" "${flags[@]}" \
+        --config.model.remat=dots --batch 16 --steps 5 --mlp_blocks "${blocks[0]}" \
+        --out "$out/kernels-train-$name$tag-$platform.json" | grep -E '"(step_ms|mfu)"|compiled'
+    python benchmarks/forward_rollout.py --config "$spec" "${fast[@]}" "${flags[@]}" \
+        --config.sampling.num_steps=59 --batch 8 --repeats 2 "$@" \
+        --out "$out/kernels-rollout-$name$tag-$platform.json" | grep -E '"rollout_frames_per_s"'
+  done
+}
+
+kernels_xl() {
+  local blocks=() b
+  for b in ${MLP_BLOCKS}; do blocks+=(--blocks "$b"); done
+  python benchmarks/mlp_kernel.py --rows 81920 --width 1152 "${blocks[@]}" \
+      --out "$out/kernels-mlp-xl-$platform.json" | grep '^{"impl"'
+  kernel_runs xl configs/irasim.py:XL --frames 15
+}
+
 case "${1:-all}" in
+  kernels-xl) kernels_xl ;;
+  kernels-wpe) kernel_runs wpe configs/wpe_600m.py --frames 18 ;;
   check) check ;;
   train) train ;;
   rollout) rollout ;;
   all) train; rollout ;;
-  *) echo "usage: $0 [check|train|rollout|all]" >&2; exit 2 ;;
+  *) echo "usage: $0 [check|train|rollout|all|kernels-xl|kernels-wpe]" >&2; exit 2 ;;
 esac

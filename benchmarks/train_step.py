@@ -15,6 +15,7 @@ Synthetic batches on a ('data', 'fsdp', 'tensor') mesh of all devices (--mesh, d
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gzip
 import statistics
 import time
@@ -28,6 +29,7 @@ from profile_ops import format_table, top_ops
 from wmjax.config import load_config
 from wmjax.model import WorldModel
 from wmjax.nn import forward_flops
+from wmjax.nn.kernels import mlp as fused_mlp
 from wmjax.parallel import make_mesh
 from wmjax.train.step import ShardedTrainer
 
@@ -92,6 +94,8 @@ def benchmark(spec: str, overrides: list[str], batch: int, frames: int | None, s
       "step_ms": step_s * 1e3, "samples_per_s": batch / step_s,
       "train_tflop_per_step": flops / 1e12, "achieved_tflops_per_s": achieved,
       "peak_tflops_per_s": peak, "mfu": achieved / (peak * jax.device_count()) if peak else None,
+      "mlp_kernel": wm.network.mlp_kernel, "norm_kernel": wm.network.norm_kernel,
+      "mlp_blocks": dataclasses.asdict(fused_mlp.DEFAULT_BLOCKS),
       "loss": float(metrics["loss"]), "compiled_memory": memory, **peak_memory(),
       "profile": profile,
   }
@@ -107,9 +111,14 @@ def main():
   parser.add_argument("--peak_tflops", type=float, default=None, help="per-device peak")
   parser.add_argument("--profile", default=None, metavar="DIR",
                       help="trace 3 steps into DIR and report device time by op")
+  parser.add_argument("--mlp_blocks", default=None, metavar="R,C,D,WARPS,STAGES",
+                      help="tiles of the fused MLP kernels (model.mlp_kernel=pallas); default: "
+                           "wmjax.nn.kernels.mlp.DEFAULT_BLOCKS")
   parser.add_argument("--hlo", default=None, metavar="FILE.gz",
                       help="write the compiled step's HLO text (gzipped), to look up profiled ops")
   args = parse_args(parser)
+  if args.mlp_blocks:
+    fused_mlp.DEFAULT_BLOCKS = fused_mlp.Blocks(*(int(v) for v in args.mlp_blocks.split(",")))
   mesh = tuple(int(v) for v in args.mesh.split(","))
   result = benchmark(args.config, args.overrides, args.batch, args.frames, args.steps, mesh,
                      args.peak_tflops, args.profile, args.hlo)
