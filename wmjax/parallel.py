@@ -25,6 +25,16 @@ def batch_sharding(mesh: Mesh, batch_axes: Sequence[str] = BATCH_AXES) -> NamedS
   return NamedSharding(mesh, PartitionSpec(tuple(a for a in batch_axes if a in mesh.axis_names)))
 
 
+def kernel_batch_axes(mesh, batch: int) -> tuple[str, ...]:
+  """The axes of ``mesh`` that a kernel run per device (``shard_map``) splits ``batch`` leading
+  rows over: the :data:`BATCH_AXES` it has with size > 1, or () when their product does not
+  divide ``batch`` (the kernel then sees every row on every device)."""
+  axes = tuple(a for a in BATCH_AXES if a in mesh.axis_names and mesh.shape[a] > 1)
+  if axes and batch % math.prod(mesh.shape[a] for a in axes):
+    return ()
+  return axes
+
+
 def global_batch(local: Mapping[str, Any], mesh: Mesh,
                  batch_axes: Sequence[str] = BATCH_AXES) -> dict[str, jax.Array]:
   """This process's batch slice (numpy, leading batch axis) -> global arrays on ``mesh``.

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec
 
-from wmjax.parallel import BATCH_AXES
+from wmjax.parallel import kernel_batch_axes
 
 ATTENTION_BACKENDS = ("xla", "cudnn", "splash", "auto")
 FLASH_DTYPES = (jnp.bfloat16, jnp.float16)
@@ -163,9 +163,7 @@ def _splash(q, k, v, causal):
   The sequences' leading axis (batch-major) is split over the batch axes, heads over ``tensor``."""
   mesh = jax.sharding.get_abstract_mesh()
   names = mesh.axis_names if not mesh.empty else ()
-  batch = tuple(a for a in BATCH_AXES if a in names and mesh.shape[a] > 1)
-  if batch and q.shape[0] % math.prod(mesh.shape[a] for a in batch):
-    batch = ()
+  batch = kernel_batch_axes(mesh, q.shape[0]) if names else ()
   heads = "tensor" if ("tensor" in names and mesh.shape["tensor"] > 1
                        and q.shape[2] % mesh.shape["tensor"] == 0) else None
   if not batch and heads is None:
