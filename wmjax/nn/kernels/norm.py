@@ -82,9 +82,10 @@ def _per_device(x, shift, scale):
   """The kernel once per device under a mesh (XLA cannot partition a Pallas call): the leading
   axis split over the batch axes that divide it, every other axis (D too) whole."""
   mesh = jax.sharding.get_abstract_mesh()
-  if mesh.empty or x.ndim < 3:
+  if mesh.empty:
     return _local(x, shift, scale)
-  spec = PartitionSpec(kernel_batch_axes(mesh, x.shape[0]) or None)
+  batch = kernel_batch_axes(mesh, x.shape[0]) if x.ndim > 2 else ()  # [P, D]: one frame
+  spec = PartitionSpec(batch or None)
   return jax.shard_map(_local, mesh=mesh, in_specs=(spec,) * 3, out_specs=spec,
                        check_vma=False)(x, shift, scale)
 
