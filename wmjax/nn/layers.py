@@ -329,8 +329,8 @@ class STBlock(nn.Module):
     else:
       raise ValueError(f"axis must be 'spatial' or 'temporal', got {self.axis!r}")
     x = x + gate_a * h
-    h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, name="mlp")(
-        layer_norm_modulate(x, shift_m, scale_m, impl=self.norm_kernel))
+    h = layer_norm_modulate(x, shift_m, scale_m, impl=self.norm_kernel)
+    h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, name="mlp")(h)
     return constrain(x + gate_m * h), kv
 
 
@@ -387,7 +387,7 @@ class FinalLayer(nn.Module):
 
   out_features: int
   dtype: Dtype = jnp.float32
-  norm_kernel: str = "xla"
+  norm_kernel: str = "xla"  # LayerNorm -> modulate: a choice of wmjax.nn.kernels.KERNEL_IMPLS
 
   @nn.compact
   def __call__(self, x: jax.Array, cond: jax.Array) -> jax.Array:
