@@ -86,6 +86,7 @@ class LayerStack(nn.Module):
   temporal_first: bool = False
   spatial_rope: bool = False
   mlp_kernel: str = "xla"
+  norm_kernel: str = "xla"
 
   @nn.compact
   def __call__(self, x, spatial_cond, temporal_cond, patch_positions, cache=None,
@@ -97,7 +98,8 @@ class LayerStack(nn.Module):
     kwargs = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio, causal=self.causal,
                   rope=self.rope, attention_impl=self.attention_impl, dtype=self.dtype,
                   return_kv=return_kv, temporal_first=self.temporal_first,
-                  spatial_rope=self.spatial_rope, mlp_kernel=self.mlp_kernel)
+                  spatial_rope=self.spatial_rope, mlp_kernel=self.mlp_kernel,
+                  norm_kernel=self.norm_kernel)
     inputs = (x, spatial_cond, temporal_cond, patch_positions)
     if self.scan:
       # the scanned layers take frame_pos per layer: as given for the first, zeros for the others
@@ -177,6 +179,7 @@ class STDiT(nn.Module):
     dtype = jnp.dtype(self.dtype)
     attention.check_backend(self.attention_impl, dtype)
     kernels.check_kernel("model.mlp_kernel", self.mlp_kernel)
+    kernels.check_kernel("model.norm_kernel", self.norm_kernel)
     d = self.hidden_size
     self.patch_embed = layers.PatchEmbed(self.patch_size, d, dtype=dtype)
     self.time_embed = layers.TimestepEmbedder(d, dtype=dtype)
@@ -193,8 +196,9 @@ class STDiT(nn.Module):
     self.blocks = LayerStack(self.depth // 2, self.num_heads, self.mlp_ratio, self.causal_temporal,
                              "rope" in self.temporal_pos, self.attention_impl, dtype,
                              self.scan_layers, self.remat, self.temporal_first,
-                             "rope" in self.spatial_pos, self.mlp_kernel)
-    self.final_layer = layers.FinalLayer(self.patch_size ** 2 * self.in_channels, dtype=dtype)
+                             "rope" in self.spatial_pos, self.mlp_kernel, self.norm_kernel)
+    self.final_layer = layers.FinalLayer(self.patch_size ** 2 * self.in_channels, dtype=dtype,
+                                         norm_kernel=self.norm_kernel)
 
   @property
   def uses_trajectory(self) -> bool:

@@ -32,6 +32,7 @@ from einops import rearrange
 from wmjax.nn.attention import attend
 from wmjax.nn.kernels import resolve_kernel
 from wmjax.nn.kernels.mlp import mlp as fused_mlp
+from wmjax.nn.kernels.norm import layer_norm_modulate
 from wmjax.parallel import LOGICAL_RULES, MESH_AXES
 
 Dtype = Any
@@ -293,18 +294,6 @@ class Attention(nn.Module):
     return out, (k, v)
 
 
-def layer_norm(x: jax.Array) -> jax.Array:
-  """LayerNorm without affine parameters (eps 1e-6), computed in float32."""
-  x32 = x.astype(jnp.float32)
-  mean = x32.mean(-1, keepdims=True)
-  var = jnp.square(x32 - mean).mean(-1, keepdims=True)
-  return ((x32 - mean) * jax.lax.rsqrt(var + 1e-6)).astype(x.dtype)
-
-
-def modulate(x: jax.Array, shift: jax.Array, scale: jax.Array) -> jax.Array:
-  return x * (1 + scale) + shift
-
-
 class Modulation(nn.Module):
   """adaLN-Zero regression ``SiLU -> Linear(D, n*D)``, zero-initialised; ``[..., D] -> n x [..., D]``."""
 
@@ -340,7 +329,8 @@ class STBlock(nn.Module):
   rope: bool = False
   attention_impl: str | None = "xla"
   dtype: Dtype = jnp.float32
-  mlp_kernel: str = "xla"
+  mlp_kernel: str = "xla"  # Linear -> GELU -> Linear: a choice of wmjax.nn.kernels.KERNEL_IMPLS
+  norm_kernel: str = "xla"  # LayerNorm -> modulate: a choice of wmjax.nn.kernels.KERNEL_IMPLS
 
   @nn.compact
   def __call__(self, x: jax.Array, cond: jax.Array, cache=None, positions=None):
@@ -350,7 +340,7 @@ class STBlock(nn.Module):
         m[:, :, None, :] for m in Modulation(6, dtype=self.dtype, name="modulation")(cond))
     attention = Attention(self.num_heads, causal=self.causal, rope=self.rope,
                           implementation=self.attention_impl, dtype=self.dtype, name="attn")
-    h = modulate(layer_norm(x), shift_a, scale_a)
+    h = layer_norm_modulate(x, shift_a, scale_a, impl=self.norm_kernel)
     if self.axis == "spatial":
       if cache is not None:
         raise ValueError("spatial attention takes no cache: frames attend within themselves")
@@ -364,8 +354,8 @@ class STBlock(nn.Module):
     else:
       raise ValueError(f"axis must be 'spatial' or 'temporal', got {self.axis!r}")
     x = x + gate_a * h
-    h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, kernel=self.mlp_kernel,
-            name="mlp")(modulate(layer_norm(x), shift_m, scale_m))
+    h = layer_norm_modulate(x, shift_m, scale_m, impl=self.norm_kernel)
+    h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, kernel=self.mlp_kernel, name="mlp")(h)
     return constrain(x + gate_m * h), kv
 
 
@@ -392,11 +382,13 @@ class STLayer(nn.Module):
   temporal_first: bool = False
   spatial_rope: bool = False
   mlp_kernel: str = "xla"
+  norm_kernel: str = "xla"
 
   @nn.compact
   def __call__(self, x, spatial_cond, temporal_cond, patch_positions, cache=None, frame_pos=None):
     common = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio,
-                  attention_impl=self.attention_impl, dtype=self.dtype, mlp_kernel=self.mlp_kernel)
+                  attention_impl=self.attention_impl, dtype=self.dtype,
+                  mlp_kernel=self.mlp_kernel, norm_kernel=self.norm_kernel)
     spatial = STBlock("spatial", rope=self.spatial_rope, **common, name="spatial")
     temporal_block = STBlock("temporal", causal=self.causal, rope=self.rope, **common,
                              name="temporal")
@@ -421,12 +413,13 @@ class FinalLayer(nn.Module):
 
   out_features: int
   dtype: Dtype = jnp.float32
+  norm_kernel: str = "xla"  # LayerNorm -> modulate: a choice of wmjax.nn.kernels.KERNEL_IMPLS
 
   @nn.compact
   def __call__(self, x: jax.Array, cond: jax.Array) -> jax.Array:
     shift, scale = (m[:, :, None, :] for m in Modulation(2, dtype=self.dtype,
                                                           name="modulation")(cond))
-    x = modulate(layer_norm(x), shift, scale)
+    x = layer_norm_modulate(x, shift, scale, impl=self.norm_kernel)
     return nn.Dense(self.out_features, dtype=self.dtype,
                     kernel_init=logical(_zeros, "embed", "patch"),
                     bias_init=logical(_zeros, "patch"), name="linear")(x)

@@ -9,8 +9,11 @@ Each kernel has a pure-JAX reference beside it and is chosen by a model field th
 ``auto``    ``pallas`` on a GPU, ``xla`` elsewhere.
 
 Under a device mesh (the trainer's ``jax.set_mesh``) a kernel runs once per device through
-``shard_map`` (XLA cannot partition a Pallas call): rows are split over the batch axes and the
-hidden width over ``tensor``.
+``shard_map`` (XLA cannot partition a Pallas call): rows are split over the batch axes, and the
+MLP's hidden width over ``tensor`` (a LayerNorm's width stays whole).
+
+Kernels: :mod:`wmjax.nn.kernels.mlp` (``model.mlp_kernel``), :mod:`wmjax.nn.kernels.norm`
+(``model.norm_kernel``).
 """
 
 from __future__ import annotations
