@@ -18,8 +18,6 @@ Kernels: :mod:`wmjax.nn.kernels.mlp` (``model.mlp_kernel``), :mod:`wmjax.nn.kern
 
 from __future__ import annotations
 
-import math
-
 import jax
 from jax.sharding import PartitionSpec as P
 
