@@ -34,6 +34,8 @@ def test_kernels_equal_their_definitions_with_padded_rows():
   pre, act = fused.dense_gelu(x, w1, b1, SMALL, interpret=True)
   np.testing.assert_allclose(pre, x @ w1 + b1, rtol=1e-5, atol=1e-5)
   np.testing.assert_allclose(act, jax.nn.gelu(x @ w1 + b1, approximate=True), rtol=1e-5, atol=1e-5)
+  (act_only,) = fused.dense_gelu(x, w1, b1, SMALL, interpret=True, keep_pre=False)
+  np.testing.assert_array_equal(act_only, act)
   g = jax.random.normal(jax.random.key(2), (150, 48))
   dpre, act2 = fused.dense_gelu_backward(g, w2, pre, SMALL, interpret=True)
   np.testing.assert_allclose(dpre, (g @ w2.T) * fused.gelu_derivative(pre), rtol=1e-5, atol=1e-5)

@@ -99,17 +99,20 @@ def gelu_derivative(z: jax.Array) -> jax.Array:
 # --------------------------------------------------------------------------- kernels
 
 
-def _dense_gelu_kernel(x_ref, w_ref, b_ref, pre_ref, act_ref, *, depth: int):
-  """One ``[rows, cols]`` tile: ``x [rows, K] @ w [K, cols] + b``, then GELU."""
+def _dense_gelu_kernel(x_ref, w_ref, b_ref, *out_refs, depth: int):
+  """One ``[rows, cols]`` tile: ``x [rows, K] @ w [K, cols] + b``, then GELU; ``out_refs`` are
+  ``(pre, act)`` or ``(act,)``."""
   def step(i, acc):
     xs = x_ref[:, pl.ds(i * depth, depth)]
     ws = w_ref[pl.ds(i * depth, depth), :]
     return acc + jnp.dot(xs, ws, preferred_element_type=jnp.float32)
 
+  act_ref = out_refs[-1]
   acc = jax.lax.fori_loop(0, x_ref.shape[1] // depth, step,
-                          jnp.zeros(pre_ref.shape, jnp.float32))
+                          jnp.zeros(act_ref.shape, jnp.float32))
   pre = acc + b_ref[...].astype(jnp.float32)[None, :]
-  pre_ref[...] = pre.astype(pre_ref.dtype)
+  if len(out_refs) == 2:
+    out_refs[0][...] = pre.astype(out_refs[0].dtype)
   act_ref[...] = gelu(pre).astype(act_ref.dtype)
 
 
@@ -138,21 +141,22 @@ def _pad_rows(a: jax.Array, rows: int) -> jax.Array:
   return a if not pad else jnp.pad(a, ((0, pad), (0, 0)))
 
 
-def _dense_gelu_local(x, w, b, blocks: Blocks, interpret: bool):
+def _dense_gelu_local(x, w, b, blocks: Blocks, interpret: bool, keep_pre: bool):
   m, k = x.shape
   n = w.shape[1]
   rows, cols, depth = blocks.rows, _tile(n, blocks.cols), _tile(k, blocks.depth)
   xp = _pad_rows(x, rows)
   grid = (xp.shape[0] // rows, n // cols)
-  out = jax.ShapeDtypeStruct((xp.shape[0], n), x.dtype)
-  pre, act = pl.pallas_call(
-      functools.partial(_dense_gelu_kernel, depth=depth), out_shape=(out, out), grid=grid,
+  outputs = 2 if keep_pre else 1
+  out = pl.pallas_call(
+      functools.partial(_dense_gelu_kernel, depth=depth),
+      out_shape=(jax.ShapeDtypeStruct((xp.shape[0], n), x.dtype),) * outputs, grid=grid,
       in_specs=[pl.BlockSpec((rows, k), lambda i, j: (i, 0)),
                 pl.BlockSpec((k, cols), lambda i, j: (0, j)),
                 pl.BlockSpec((cols,), lambda i, j: (j,))],
-      out_specs=[pl.BlockSpec((rows, cols), lambda i, j: (i, j))] * 2,
+      out_specs=[pl.BlockSpec((rows, cols), lambda i, j: (i, j))] * outputs,
       compiler_params=_params(blocks), interpret=interpret, name="wmjax_dense_gelu")(xp, w, b)
-  return pre[:m], act[:m]
+  return tuple(a[:m] for a in out)
 
 
 def _gelu_backward_local(g, w, pre, blocks: Blocks, interpret: bool):
@@ -173,17 +177,20 @@ def _gelu_backward_local(g, w, pre, blocks: Blocks, interpret: bool):
 
 
 def dense_gelu(x: jax.Array, w: jax.Array, b: jax.Array, blocks: Blocks = Blocks(),
-               interpret: bool | None = None) -> tuple[jax.Array, jax.Array]:
+               interpret: bool | None = None, keep_pre: bool = True):
   """``x [M, K]``, ``w [K, N]``, ``b [N]`` -> ``(pre, GELU(pre))``, each ``[M, N]`` in x's dtype,
-  ``pre = x w + b`` accumulated in float32. Per device under a mesh (see the package doc)."""
+  ``pre = x w + b`` accumulated in float32; with ``keep_pre=False`` only ``(GELU(pre),)`` (one
+  write fewer, for inference). Per device under a mesh (see the package doc)."""
   interpret = kernels.interpret() if interpret is None else interpret
-  local = functools.partial(_dense_gelu_local, blocks=blocks, interpret=interpret)
+  local = functools.partial(_dense_gelu_local, blocks=blocks, interpret=interpret,
+                            keep_pre=keep_pre)
   rows, width = kernels.split_axes(x.shape[0], w.shape[1])
   if rows is None and width is None:
     return local(x, w, b)
   spec = kernels.P(rows, width)
   return kernels.per_device(local, in_specs=(kernels.P(rows, None), kernels.P(None, width),
-                                             kernels.P(width)), out_specs=(spec, spec))(x, w, b)
+                                             kernels.P(width)),
+                            out_specs=(spec,) * (2 if keep_pre else 1))(x, w, b)
 
 
 def dense_gelu_backward(g: jax.Array, w: jax.Array, pre: jax.Array, blocks: Blocks = Blocks(),
@@ -219,7 +226,10 @@ def mlp_reference(x, w1, b1, w2, b2):
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4))
 def _hidden(x, w1, b1, blocks, interpret):
-  return dense_gelu(x, w1, b1, blocks, interpret)
+  # Not differentiated (sampling): pre is never read (only _output's backward reads it), so the
+  # kernel does not write it; the zeros stand in for it and are removed by XLA as unused.
+  (act,) = dense_gelu(x, w1, b1, blocks, interpret, keep_pre=False)
+  return jnp.zeros_like(act), act
 
 
 def _hidden_forward(x, w1, b1, blocks, interpret):
