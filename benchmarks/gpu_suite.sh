@@ -31,8 +31,9 @@ cd "$(dirname "$0")/.."
 out=${OUT_DIR:-benchmarks/results}
 traces=${TRACE_DIR:-${TMPDIR:-/tmp}/wmjax-traces}
 mkdir -p "$out"
+py=${PYTHON:-python3}  # the interpreter that has JAX (PYTHON=...)
 export XLA_PYTHON_CLIENT_MEM_FRACTION=${XLA_PYTHON_CLIENT_MEM_FRACTION:-0.95}
-platform=$(python -c "import jax; print(jax.default_backend())")
+platform=$($py -c "import jax; print(jax.default_backend())")
 fast=(--config.model.dtype=bfloat16 --config.model.attention_impl=auto)
 
 check() {
@@ -49,10 +50,10 @@ check() {
 train() {
   check
   # IRASim-XL/2 trains on 16-frame windows, WPE-600M on 20-frame ones (WPE table 5: batch 16).
-  python benchmarks/train_step.py --config configs/irasim.py:XL "${fast[@]}" \
+  $py benchmarks/train_step.py --config configs/irasim.py:XL "${fast[@]}" \
       --config.model.remat=dots --batch 16 --steps 5 --profile "$traces/train-irasim" \
       --out "$out/train_step-irasim-XL_2-bf16-b16-$platform.json"
-  python benchmarks/train_step.py --config configs/wpe_600m.py "${fast[@]}" \
+  $py benchmarks/train_step.py --config configs/wpe_600m.py "${fast[@]}" \
       --config.model.remat=dots --batch 16 --steps 5 --profile "$traces/train-wpe" \
       --out "$out/train_step-wpe-600m-bf16-b16-$platform.json"
 }
@@ -60,12 +61,12 @@ train() {
 rollout() {
   for steps in 59 10; do
     # IRASim chains 15-frame blocks after one context frame (bidirectional: no KV cache).
-    python benchmarks/forward_rollout.py --config configs/irasim.py:XL "${fast[@]}" \
+    $py benchmarks/forward_rollout.py --config configs/irasim.py:XL "${fast[@]}" \
         --config.sampling.num_steps=$steps --batch 8 --frames 15 --repeats 2 \
         --out "$out/forward_rollout-irasim-XL_2-bf16-steps$steps-$platform.json"
     # WPE: 9 context + 9 new frames, causal, with and without the temporal KV cache.
     for kv in True False; do
-      python benchmarks/forward_rollout.py --config configs/wpe_600m.py "${fast[@]}" \
+      $py benchmarks/forward_rollout.py --config configs/wpe_600m.py "${fast[@]}" \
           --config.sampling.num_steps=$steps --config.sampling.kv_cache=$kv \
           --batch 8 --frames 18 --repeats 2 \
           --out "$out/forward_rollout-wpe-600m-bf16-steps$steps-kv$kv-$platform.json"
@@ -76,30 +77,35 @@ rollout() {
 # Kernel settings compared, one knob at a time: the XLA baseline, the fused MLP, then the fused
 # MLP with the fused LayerNorm-modulate. Tile settings of the MLP kernels: MLP_BLOCKS (the train
 # steps and rollouts use the first), rows,cols,depth,warps,stages each.
-MLP_BLOCKS=${MLP_BLOCKS:-"128,128,64,8,3 128,128,64,4,4 128,256,64,8,3 64,128,64,4,4"}
+MLP_BLOCKS=${MLP_BLOCKS:-"128,128,64,8,3 128,128,64,4,4 128,256,64,8,3 256,128,64,8,3 64,128,64,4,4"}
 KERNELS=("mlp_kernel=xla norm_kernel=xla" "mlp_kernel=pallas norm_kernel=xla"
          "mlp_kernel=pallas norm_kernel=pallas")
 
-kernel_runs() {  # NAME CONFIG FRAMES_TRAIN ROLLOUT_ARGS...
-  local name=$1 spec=$2; shift 2
+kernel_runs() {  # NAME CONFIG ROLLOUT_ARGS...: each setting's train step and rollout; a setting
+  local name=$1 spec=$2; shift 2  # that fails (out of memory, say) is reported and skipped
   local blocks=(${MLP_BLOCKS})
   for setting in "${KERNELS[@]}"; do
     local flags=() tag=""
     for kv in $setting; do flags+=("--config.model.$kv"); tag+="-${kv#*=}"; done
-    python benchmarks/train_step.py --config "$spec" "${fast[@]}" "${flags[@]}" \
+    echo "== $name $setting"
+    $py benchmarks/train_step.py --config "$spec" "${fast[@]}" "${flags[@]}" \
         --config.model.remat=dots --batch 16 --steps 5 --mlp_blocks "${blocks[0]}" \
-        --out "$out/kernels-train-$name$tag-$platform.json" | grep -E '"(step_ms|mfu)"|compiled'
-    python benchmarks/forward_rollout.py --config "$spec" "${fast[@]}" "${flags[@]}" \
+        --out "$out/kernels-train-$name$tag-$platform.json" > "$traces-$name$tag-train.log" 2>&1 \
+      && grep -E '"(step_ms|mfu)"' "$out/kernels-train-$name$tag-$platform.json" \
+      || { echo "train step failed:"; tail -3 "$traces-$name$tag-train.log"; }
+    $py benchmarks/forward_rollout.py --config "$spec" "${fast[@]}" "${flags[@]}" \
         --config.sampling.num_steps=59 --batch 8 --repeats 2 "$@" \
-        --out "$out/kernels-rollout-$name$tag-$platform.json" | grep -E '"rollout_frames_per_s"'
+        --out "$out/kernels-rollout-$name$tag-$platform.json" > "$traces-$name$tag-roll.log" 2>&1 \
+      && grep -E '"rollout_frames_per_s"' "$out/kernels-rollout-$name$tag-$platform.json" \
+      || { echo "rollout failed:"; tail -3 "$traces-$name$tag-roll.log"; }
   done
 }
 
 kernels_xl() {
   local blocks=() b
   for b in ${MLP_BLOCKS}; do blocks+=(--blocks "$b"); done
-  python benchmarks/mlp_kernel.py --rows 81920 --width 1152 "${blocks[@]}" \
-      --out "$out/kernels-mlp-xl-$platform.json" | grep '^{"impl"'
+  $py benchmarks/mlp_kernel.py --rows 81920 --width 1152 "${blocks[@]}" \
+      --out "$out/kernels-mlp-xl-$platform.json" 2>&1 | grep -E '^\{"impl"|Error' || true
   kernel_runs xl configs/irasim.py:XL --frames 15
 }
 
