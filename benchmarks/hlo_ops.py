@@ -18,9 +18,12 @@ Every kernel-level instruction (not the inside of a fusion) falls in one class:
 ``transposing`` a fusion that computes something and transposes inside (the transpose emitter's
                hero is not the root): the transpose costs a pass over memory it would not need
 ``copy``       a ``copy`` keeping its layout, ``copy-start``: a memcpy
-``slice``      a fusion whose root is a ``dynamic-slice`` or ``dynamic-update-slice``: in a loop
-               the stacking of scanned layers' outputs and residuals, which XLA may run as a
-               memcpy (``DynamicMemcpyThunk``)
+``memcpy``     a ``dynamic-slice`` or ``dynamic-update-slice`` that XLA's GPU compiler made a
+               ``dynamic_slice_fusion`` custom fusion: a device-to-device memcpy at an offset
+               computed on the host (the ``memcpy128`` kernels of a GPU profile). In a scan over
+               layers these write each layer's residuals into the ``[layers, ...]`` stacks
+``slice``      any other fusion whose root is a ``dynamic-slice`` or ``dynamic-update-slice``
+               (a kernel: reading one layer's slice of those stacks, say)
 
 Instructions in a ``while`` body count once per iteration (``known_trip_count``; 1 when XLA does
 not know it), so a scan over 14 layers counts its body 14 times. Bytes moved are bytes written
@@ -48,7 +51,7 @@ _CALLS = re.compile(r"\b(calls|body|condition|to_apply|true_computation|false_co
 _BRANCHES = re.compile(r"\b(?:branch_computations|called_computations)=\{([^}]*)\}")
 _TRIP = re.compile(r'"known_trip_count":\{"n":"(\d+)"')
 _OP_NAME = re.compile(r'op_name="([^"]*)"')
-CLASSES = ("transpose", "transposing", "copy", "slice")
+CLASSES = ("transpose", "transposing", "copy", "memcpy", "slice")
 # Ops a fusion root is looked through to find what the kernel does.
 _THROUGH = ("bitcast", "convert", "tuple", "get-tuple-element")
 
@@ -220,7 +223,8 @@ def classify(inst: Instruction, computations: dict[str, list[Instruction]],
   if slices:
     moved = sum(nbytes(fused_shapes.get(h.operands[1], "")) if h.opcode == "dynamic-update-slice"
                 else nbytes(h.shape) for h in slices)
-    return "slice", moved, moved
+    custom = '"name":"dynamic_slice_fusion"' in inst.attributes
+    return ("memcpy" if custom else "slice"), moved, moved
   if any(h.opcode == "transpose" or (h.opcode == "copy" and _layout_changes(h, fused_shapes))
          for h in heroes):
     return "transpose", written, read

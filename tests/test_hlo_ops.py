@@ -14,7 +14,7 @@ import hlo_ops  # noqa: E402
 
 # A loop of 5 iterations that transposes an f32[8,4] (a transpose fusion), scales it (a fusion
 # with a transpose inside that is not its root), stacks a row into f32[5,4,8] (a dynamic-update-
-# slice fusion) and copies it to another layout; after the loop one plain copy. HLO text has one
+# slice fusion that runs as a memcpy) and copies it to another layout; after the loop one plain copy. HLO text has one
 # instruction a line: the lines continued here (indented 6) are joined below.
 MODULE = """HloModule m
 
@@ -56,8 +56,10 @@ MODULE = """HloModule m
       metadata={op_name="jit(f)/while/body/layers/attn/transpose"}
   %fusion.2 = f32[4]{0} fusion(%x), kind=kInput, calls=%fused_scale,
       metadata={op_name="jit(f)/while/body/layers/scale"}
-  %fusion.3 = f32[5,4,8]{2,1,0} fusion(%stack, %fusion.1, %i), kind=kLoop, calls=%fused_dus,
-      metadata={op_name="jit(f)/while/body/dynamic_update_slice"}
+  %fusion.3 = f32[5,4,8]{2,1,0} fusion(%stack, %fusion.1, %i), kind=kCustom, calls=%fused_dus,
+      metadata={op_name="jit(f)/while/body/dynamic_update_slice"},
+      backend_config={"fusion_backend_config":{"kind":"__custom_fusion",
+      "custom_fusion_config":{"name":"dynamic_slice_fusion","kernel_index":0}}}
   %copy.1 = f32[8,4]{0,1} copy(%x)
   ROOT %t = (s32[], f32[8,4]{1,0}, f32[5,4,8]{2,1,0}) tuple(%i, %x, %fusion.3)
 }
@@ -89,7 +91,7 @@ def test_kernels_are_classified_and_loop_bodies_counted_per_iteration():
   assert (layout_copy.count, layout_copy.moved) == (5, 5 * 2 * tile)
   scale = rows["transposing", "layers/scale"]
   assert (scale.count, scale.moved) == (5, 5 * 2 * tile)
-  stack = rows["slice", "dynamic_update_slice"]  # the row written, not the whole stack
+  stack = rows["memcpy", "dynamic_update_slice"]  # the row written, not the whole stack
   assert (stack.count, stack.moved) == (5, 5 * 2 * tile)
   memcpy = rows["copy", "?"]
   assert (memcpy.count, memcpy.moved) == (1, 2 * 5 * tile)
