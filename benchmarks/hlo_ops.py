@@ -15,8 +15,8 @@ Every kernel-level instruction (not the inside of a fusion) falls in one class:
 
 ``transpose``  a ``transpose``, a ``copy`` that changes the layout, or a fusion whose root (through
                bitcasts, converts and multi-output tuples) is one of those: pure data movement
-``transposing`` a fusion that computes something and transposes inside (the transpose emitter's
-               hero is not the root): the transpose costs a pass over memory it would not need
+``transposing`` a fusion that computes something and transposes inside (the transpose is not
+               its root): its bytes are those that pass through the transposes, read and written
 ``copy``       a ``copy`` keeping its layout, ``copy-start``: a memcpy
 ``memcpy``     a ``dynamic-slice`` or ``dynamic-update-slice`` that XLA's GPU compiler made a
                ``dynamic_slice_fusion`` custom fusion: a device-to-device memcpy at an offset
@@ -209,7 +209,7 @@ def classify(inst: Instruction, computations: dict[str, list[Instruction]],
   if inst.opcode == "copy":
     return ("transpose" if _layout_changes(inst, shapes) else "copy"), written, read
   if inst.opcode == "copy-start":
-    return "copy", written // 2, read
+    return "copy", read, read  # its output is (source, destination, context)
   if inst.opcode != "fusion":
     return None
   called = _CALLS.search(inst.attributes)
