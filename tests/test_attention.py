@@ -138,9 +138,26 @@ def test_backend_errors_say_what_was_expected(backend, dtype, platform, message)
     resolve_backend(backend, dtype, platform)
 
 
+@pytest.mark.parametrize("backend,lq,lk,causal", [
+    ("xla", 7, 7, True), ("xla", 3, 8, True), ("xla", 5, 5, False),
+    ("splash", 130, 200, True),  # flash kernels fold the batch axes into N
+])
+def test_batch_axes_before_the_heads_equal_sequences_folded_into_n(backend, lq, lk, causal):
+  """``q [N, L, M, H, d]`` (temporal attention over ``[B, T, P, ...]`` tokens) attends as the
+  ``N*M`` sequences of ``[N*M, L, H, d]`` do, in float32 and bfloat16."""
+  for dtype, atol in ((jnp.float32, 2e-5), (jnp.bfloat16, 1e-2)):
+    q, k, v = _qkv(lq * 3, lk * 3, batch=1, dtype=dtype)
+    split = lambda a: a.reshape(1, 3, a.shape[1] // 3, 2, 16).transpose(0, 2, 1, 3, 4)
+    fold = lambda a: a.transpose(0, 2, 1, 3, 4).reshape(3, a.shape[1], 2, 16)
+    got = attend(split(q), split(k), split(v), causal=causal, backend=backend)
+    want = attend(fold(split(q)), fold(split(k)), fold(split(v)), causal=causal, backend=backend)
+    assert got.shape == (1, lq, 3, 2, 16)
+    np.testing.assert_allclose(fold(got).astype(jnp.float32), want.astype(jnp.float32), atol=atol)
+
+
 def test_attention_rejects_mismatched_shapes():
   q, k, v = _qkv(4, 4)
-  with pytest.raises(ValueError, match=r"q \[N, Lq, H, d\] and k, v \[N, Lk, H, d\]"):
+  with pytest.raises(ValueError, match=r"q \[N, Lq, ..., H, d\] and k, v \[N, Lk, ..., H, d\]"):
     attend(q, k[..., :8], v)
   with pytest.raises(ValueError, match=r"at least as many keys as queries, got Lq=4 > Lk=2"):
     attend(q, k[:, :2], v[:, :2])

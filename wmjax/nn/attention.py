@@ -4,6 +4,9 @@
 ``[N, Lq, H, d]``. Queries are the last ``Lq`` positions of the ``Lk`` keys (``Lq <= Lk``): with
 ``causal=True`` query ``i`` sees keys ``0 .. Lk - Lq + i``, which is ordinary causal attention when
 ``Lq == Lk`` and attention after a cached prefix (the temporal KV cache) when ``Lq < Lk``.
+More batch axes may sit between the sequence and the heads: ``q [N, Lq, M, H, d]`` for temporal
+attention over ``[B, T, P, H, d]`` tokens, the patches a batch axis, computes in that layout
+under XLA (the flash kernels fold ``M`` into ``N``, a transpose).
 
 Backends (``model.attention_impl``):
 
@@ -93,9 +96,10 @@ def prefix_causal_mask(query_len: int, key_len: int) -> np.ndarray:
 
 
 def _check_shapes(q, k, v) -> None:
-  if q.ndim != 4 or k.shape != v.shape or k.ndim != 4 or q.shape[::2] != k.shape[::2]:
-    raise ValueError(f"attention needs q [N, Lq, H, d] and k, v [N, Lk, H, d] with matching N, "
-                     f"H, d; got q {q.shape}, k {k.shape}, v {v.shape}")
+  if (q.ndim < 4 or k.shape != v.shape or k.ndim != q.ndim
+      or q.shape[:1] + q.shape[2:] != k.shape[:1] + k.shape[2:]):
+    raise ValueError(f"attention needs q [N, Lq, ..., H, d] and k, v [N, Lk, ..., H, d] with "
+                     f"matching N, ..., H, d; got q {q.shape}, k {k.shape}, v {v.shape}")
   if q.shape[1] > k.shape[1]:
     raise ValueError(f"attention needs at least as many keys as queries, got Lq={q.shape[1]} > "
                      f"Lk={k.shape[1]}")
@@ -103,14 +107,22 @@ def _check_shapes(q, k, v) -> None:
 
 def attend(q: jax.Array, k: jax.Array, v: jax.Array, *, causal: bool = False,
            backend: str | None = "xla") -> jax.Array:
-  """Softmax attention ``[N, Lq, H, d] x [N, Lk, H, d]^2 -> [N, Lq, H, d]`` (see module doc)."""
+  """Softmax attention ``[N, Lq, ..., H, d] x [N, Lk, ..., H, d]^2 -> [N, Lq, ..., H, d]`` (see
+  module doc)."""
   _check_shapes(q, k, v)
   name = resolve_backend(backend, q.dtype)
-  if name == "cudnn" and k.shape[1] >= FLASH_MIN_KEYS:
+  flash = ((name == "cudnn" and k.shape[1] >= FLASH_MIN_KEYS)
+           or (name == "splash" and q.shape[1] >= SPLASH_BLOCK))
+  if flash and q.ndim > 4:
+    # the flash kernels take one batch axis: the others join N, a transpose of q, k, v and out
+    fold = lambda a: jnp.moveaxis(a, 1, -3).reshape((-1,) + a.shape[1:2] + a.shape[-2:])
+    out = attend(fold(q), fold(k), fold(v), causal=causal, backend=name)
+    return jnp.moveaxis(out.reshape(q.shape[:1] + q.shape[2:-2] + out.shape[1:]), -3, 1)
+  if name == "cudnn" and flash:
     return _cudnn(q, k, v, causal)
-  if name == "splash" and q.shape[1] >= SPLASH_BLOCK:
+  if flash:
     return _splash(q, k, v, causal)
-  return _xla(q, k, v, causal)
+  return _xla(q, k, v, causal) if q.ndim == 4 else _xla_batched(q, k, v, causal)
 
 
 def _mask(q, k, causal: bool):
@@ -124,6 +136,24 @@ def _xla(q, k, v, causal):
   is_causal, mask = _mask(q, k, causal)
   return jax.nn.dot_product_attention(q, k, v, mask=mask, is_causal=is_causal,
                                       implementation="xla")
+
+
+def _xla_batched(q, k, v, causal):
+  """``jax.nn.dot_product_attention(implementation='xla')``'s arithmetic (float32 logits and
+  softmax, ``1/sqrt(d)`` scale) for ``q [N, Lq, ..., H, d]``: the einsums take the axes between
+  the sequence and the heads as batch axes where they are, so the caller transposes nothing."""
+  batch = "abcdefgijklm"[:q.ndim - 4]
+  precision = {jnp.dtype(jnp.bfloat16): jax.lax.DotAlgorithmPreset.BF16_BF16_F32,
+               jnp.dtype(jnp.float16): jax.lax.DotAlgorithmPreset.F16_F16_F32}.get(q.dtype)
+  logits = jnp.einsum(f"nq{batch}hd,ns{batch}hd->n{batch}hqs", q, k, precision=precision,
+                      preferred_element_type=jnp.promote_types(q.dtype, jnp.float32))
+  logits = logits * jnp.asarray(1.0 / math.sqrt(q.shape[-1]), logits.dtype)
+  if causal:
+    mask = jnp.asarray(prefix_causal_mask(q.shape[1], k.shape[1]))
+    logits = jnp.where(mask, logits, jnp.asarray(-0.7 * jnp.finfo(logits.dtype).max,
+                                                 logits.dtype))
+  probs = jax.nn.softmax(logits.astype(jnp.float32), axis=-1).astype(v.dtype)
+  return jnp.einsum(f"n{batch}hqs,ns{batch}hd->nq{batch}hd", probs, v)
 
 
 def _cudnn(q, k, v, causal):

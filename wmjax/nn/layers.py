@@ -93,7 +93,8 @@ def timestep_features(t: jax.Array, dim: int = 256, max_period: float = 10000.0)
 
 
 def rope(x: jax.Array, positions: jax.Array, base: float = 10000.0) -> jax.Array:
-  """Rotary position embedding over the last axis of ``x [N, L, H, d]``.
+  """Rotary position embedding over the last axis of ``x [N, L, ..., H, d]`` (its tokens at
+  positions along axis 1; the axes between are batch axes, as the patches of temporal attention).
 
   ``positions [L]`` rotates the whole head dimension by one position per token; ``positions
   [L, k]`` (e.g. the (row, column) of a patch) is axial: the head dimension splits into ``k`` equal
@@ -113,7 +114,8 @@ def rope(x: jax.Array, positions: jax.Array, base: float = 10000.0) -> jax.Array
     raise ValueError(f"RoPE needs an even head dimension, got {d}")
   inv_freq = 1.0 / base ** (jnp.arange(0, d, 2, dtype=jnp.float32) / d)
   angles = positions.astype(jnp.float32)[:, None] * inv_freq  # [L, d/2]
-  cos, sin = jnp.cos(angles)[None, :, None], jnp.sin(angles)[None, :, None]
+  angles = angles.reshape((1, x.shape[1]) + (1,) * (x.ndim - 3) + (d // 2,))
+  cos, sin = jnp.cos(angles), jnp.sin(angles)
   x1, x2 = jnp.split(x.astype(jnp.float32), 2, axis=-1)
   return jnp.concatenate([x1 * cos - x2 * sin, x1 * sin + x2 * cos], axis=-1).astype(x.dtype)
 
@@ -250,14 +252,18 @@ class Mlp(nn.Module):
 
 
 class Attention(nn.Module):
-  """Multi-head self-attention over axis 1 of ``x [N, L, D]`` (:func:`wmjax.nn.attention.attend`).
+  """Multi-head self-attention over axis 1 of ``x [N, L, ..., D]``
+  (:func:`wmjax.nn.attention.attend`).
 
+  Axes between the sequence axis and the width are batch axes, like ``N``: ``x [B, T, P, D]``
+  attends across the ``T`` frames of every patch position without a transpose of the tokens to
+  ``[B*P, T, D]``. Below, ``...`` stands for those axes (none for ``x [N, L, D]``).
   ``causal`` masks future positions; ``rope`` rotates queries and keys by their position:
   ``positions`` (``[L]`` or axial ``[L, k]``, see :func:`rope`), by default ``Lc .. Lc+L-1``.
-  ``cache = (k, v)``, each ``[N, Lc, H, d]``, holds the keys and values of ``Lc`` earlier positions:
-  ``x`` is then at positions ``Lc .. Lc+L-1`` and attends to the cache as well. Returns the output
-  ``[N, L, D]`` and ``x``'s own keys and values (``[N, L, H, d]`` each, RoPE applied), which a
-  later call can take as its cache.
+  ``cache = (k, v)``, each ``[N, Lc, ..., H, d]``, holds the keys and values of ``Lc`` earlier
+  positions: ``x`` is then at positions ``Lc .. Lc+L-1`` and attends to the cache as well. Returns
+  the output ``[N, L, ..., D]`` and ``x``'s own keys and values (``[N, L, ..., H, d]`` each, RoPE
+  applied), which a later call can take as its cache.
   """
 
   num_heads: int
@@ -278,7 +284,7 @@ class Attention(nn.Module):
                              kernel_init=logical(_xavier, "embed", "heads", "kv"),
                              bias_init=logical(_zeros, "heads", "kv"), name=name)(x)
 
-    q, k, v = project("query"), project("key"), project("value")  # [N, L, H, d]
+    q, k, v = project("query"), project("key"), project("value")  # [N, L, ..., H, d]
     offset = 0 if cache is None else cache[0].shape[1]
     if self.rope:
       if positions is None:
@@ -314,7 +320,8 @@ class STBlock(nn.Module):
 
   ``axis='spatial'``: the P patches of each frame attend to each other.
   ``axis='temporal'``: each patch position attends across the T frames (optionally causal), and
-  across the ``Tc`` earlier frames of ``cache`` (keys, values ``[B*P, Tc, H, d]``) when given.
+  across the ``Tc`` earlier frames of ``cache`` (keys, values ``[B*P, Tc, H, d]``) when given; the
+  patches are a batch axis of that attention, so the tokens keep their ``[B, T, P, D]`` layout.
   ``cond [B, T, D]`` is the per-frame conditioning vector; it modulates every token of its frame.
   With ``rope``, ``positions`` are the RoPE positions of the attended axis (for the spatial axis
   the ``[P, 2]`` (row, column) of each patch: relative 2-D positions; for the temporal axis the
@@ -348,9 +355,11 @@ class STBlock(nn.Module):
       h = attention(rearrange(h, "b t p d -> (b t) p d"), positions=positions)[0]
       h, kv = rearrange(h, "(b t) p d -> b t p d", b=b), None
     elif self.axis == "temporal":
-      # each patch position attends across frames: sequences of T tokens
-      h, kv = attention(rearrange(h, "b t p d -> (b p) t d"), cache)
-      h = rearrange(h, "(b p) t d -> b t p d", b=b)
+      # each patch position attends across frames: sequences of T tokens, P a batch axis
+      if cache is not None:
+        cache = tuple(rearrange(a, "(b p) t h k -> b t p h k", b=b) for a in cache)
+      h, kv = attention(h, cache)
+      kv = tuple(rearrange(a, "b t p h k -> (b p) t h k") for a in kv)
     else:
       raise ValueError(f"axis must be 'spatial' or 'temporal', got {self.axis!r}")
     x = x + gate_a * h
