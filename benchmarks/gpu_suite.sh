@@ -13,8 +13,8 @@
 #   benchmarks/gpu_suite.sh all
 #   benchmarks/gpu_suite.sh kernels-xl   # the fused kernels (wmjax.nn.kernels): the MLP kernels
 #                                        # alone at XL/2's shape (tile settings side by side),
-#                                        # then XL/2's train step and 59-call rollout with each
-#                                        # kernel off and on (about 8 minutes on one H100)
+#                                        # then XL/2's train step with each kernel off and on,
+#                                        # and its 59-call rollout (about 8 minutes on one H100)
 #   benchmarks/gpu_suite.sh kernels-wpe  # the same for WPE-600M's train step and rollout
 #
 # On a machine with no package index (the lent GPU machines), carry .whl/core
@@ -74,25 +74,38 @@ rollout() {
   done
 }
 
-# Kernel settings compared, one knob at a time: the XLA baseline, the fused MLP, then the fused
-# MLP with the fused LayerNorm-modulate. Tile settings of the MLP kernels: MLP_BLOCKS (the train
-# steps and rollouts use the first), rows,cols,depth,warps,stages each.
+# Settings compared, one knob at a time: the XLA baseline, the fused MLP, the fused MLP with the
+# fused LayerNorm-modulate, then the same with unrolled layers (no scan: no per-layer stacking
+# copies of the saved activations). Rollouts: the baseline and both kernels. Tile settings of
+# the MLP kernels: MLP_BLOCKS (the train steps and rollouts use the first),
+# rows,cols,depth,warps,stages each.
 MLP_BLOCKS=${MLP_BLOCKS:-"128,128,64,8,3 128,128,64,4,4 128,256,64,8,3 256,128,64,8,3 64,128,64,4,4"}
-KERNELS=("mlp_kernel=xla norm_kernel=xla" "mlp_kernel=pallas norm_kernel=xla"
-         "mlp_kernel=pallas norm_kernel=pallas")
+TRAIN_SETTINGS=("mlp_kernel=xla norm_kernel=xla" "mlp_kernel=pallas norm_kernel=xla"
+                "mlp_kernel=pallas norm_kernel=pallas"
+                "mlp_kernel=pallas norm_kernel=pallas scan_layers=False")
+ROLLOUT_SETTINGS=("mlp_kernel=xla norm_kernel=xla" "mlp_kernel=pallas norm_kernel=pallas")
 
-kernel_runs() {  # NAME CONFIG ROLLOUT_ARGS...: each setting's train step and rollout; a setting
-  local name=$1 spec=$2; shift 2  # that fails (out of memory, say) is reported and skipped
+setting_flags() {  # "k=v k=v" -> --config.model.k=v ... in flags, -v-v in tag
+  flags=() tag=""
+  local kv
+  for kv in $1; do flags+=("--config.model.$kv"); tag+="-${kv#*=}"; done
+}
+
+kernel_runs() {  # NAME CONFIG ROLLOUT_ARGS...: each setting's train step, then rollouts; a
+  local name=$1 spec=$2 setting flags tag; shift 2  # failing one (out of memory) is reported
   local blocks=(${MLP_BLOCKS})
-  for setting in "${KERNELS[@]}"; do
-    local flags=() tag=""
-    for kv in $setting; do flags+=("--config.model.$kv"); tag+="-${kv#*=}"; done
-    echo "== $name $setting"
+  for setting in "${TRAIN_SETTINGS[@]}"; do
+    setting_flags "$setting"
+    echo "== $name train $setting"
     $py benchmarks/train_step.py --config "$spec" "${fast[@]}" "${flags[@]}" \
         --config.model.remat=dots --batch 16 --steps 5 --mlp_blocks "${blocks[0]}" \
         --out "$out/kernels-train-$name$tag-$platform.json" > "$traces-$name$tag-train.log" 2>&1 \
       && grep -E '"(step_ms|mfu)"' "$out/kernels-train-$name$tag-$platform.json" \
       || { echo "train step failed:"; tail -3 "$traces-$name$tag-train.log"; }
+  done
+  for setting in "${ROLLOUT_SETTINGS[@]}"; do
+    setting_flags "$setting"
+    echo "== $name rollout $setting"
     $py benchmarks/forward_rollout.py --config "$spec" "${fast[@]}" "${flags[@]}" \
         --config.sampling.num_steps=59 --batch 8 --repeats 2 "$@" \
         --out "$out/kernels-rollout-$name$tag-$platform.json" > "$traces-$name$tag-roll.log" 2>&1 \
