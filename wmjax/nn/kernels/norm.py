@@ -182,7 +182,7 @@ def _forward(x, shift, scale):
                  jax.ShapeDtypeStruct((f, p), jnp.float32)],
       compiler_params=_compiler_params(d),
       interpret=kernels.interpret(),
-      name="layer_norm_modulate",
+      name="wmjax_layer_norm_modulate",
   )(x, shift, scale)
 
 
@@ -238,5 +238,5 @@ def _backward(x, scale, mean, rstd, dy):
       out_shape=[jax.ShapeDtypeStruct(x.shape, x.dtype), partial_shape, partial_shape],
       compiler_params=_compiler_params(d),
       interpret=kernels.interpret(),
-      name="layer_norm_modulate_backward",
+      name="wmjax_layer_norm_modulate_backward",
   )(x, scale, mean, rstd, dy)
