@@ -114,11 +114,21 @@ kernel_runs() {  # NAME CONFIG ROLLOUT_ARGS...: each setting's train step, then 
   done
 }
 
+fastest_blocks() {  # the MLP kernels' fastest tile setting in mlp_kernel.py's JSON $1 (else none)
+  $py -c 'import json, sys
+runs = [r for r in json.load(open(sys.argv[1]))["runs"] if r["impl"] == "pallas" and "ms" in r]
+b = min(runs, key=lambda r: r["ms"])["blocks"] if runs else None
+print(",".join(str(b[k]) for k in ("rows", "cols", "depth", "warps", "stages")) if b else "")' "$1"
+}
+
 kernels_xl() {
-  local blocks=() b
+  local blocks=() b best
   for b in ${MLP_BLOCKS}; do blocks+=(--blocks "$b"); done
   $py benchmarks/mlp_kernel.py --rows 81920 --width 1152 "${blocks[@]}" \
       --out "$out/kernels-mlp-xl-$platform.json" 2>&1 | grep -E '^\{"impl"|Error' || true
+  best=$(fastest_blocks "$out/kernels-mlp-xl-$platform.json" 2>/dev/null || true)
+  # the steps below take the fastest tiles found (the order of MLP_BLOCKS otherwise)
+  [[ -n $best ]] && MLP_BLOCKS="$best ${MLP_BLOCKS}" && echo "MLP tiles: $best"
   kernel_runs xl configs/irasim.py:XL --frames 15
 }
 
