@@ -1,9 +1,10 @@
-"""Transposes and copies of a compiled program, from its optimized HLO, counted per execution.
+"""The kernels of a compiled program, from its optimized HLO, counted per execution: how many of
+each class run and how many bytes they move, with its transposes and copies listed one by one.
 
   python benchmarks/hlo_ops.py --config configs/irasim.py:XL --target h100 --batch 16 \
       --config.model.dtype=bfloat16 --config.model.attention_impl=auto \
-      --config.model.remat=dots [--save_hlo /tmp/xl.hlo] [--top 40]
-  python benchmarks/hlo_ops.py --hlo /tmp/xl.hlo
+      --config.model.remat=dots [--save_hlo /tmp/xl.hlo] [--top 40] [--json [FILE]]
+  python benchmarks/hlo_ops.py --hlo /tmp/xl.hlo [--summary]
 
 The first form compiles the train step of a config for a device target as ``wmjax compile`` does
 (:func:`wmjax.train.fit.compile_step`; no hardware needed) and reads ``compiled.as_text()``; the
@@ -11,25 +12,42 @@ second reads HLO text saved before. For an H100 target without a GPU, set
 ``XLA_FLAGS="--xla_gpu_enable_triton_gemm=false --xla_gpu_autotune_level=0"``: without autotuning
 the Triton GEMM emitter can fail to tile some matmuls.
 
-Every kernel-level instruction (not the inside of a fusion) falls in one class:
+Every kernel-level instruction (not the inside of a fusion) falls in one class, the first that
+fits:
 
-``transpose``  a ``transpose``, a ``copy`` that changes the layout, or a fusion whose root (through
-               bitcasts, converts and multi-output tuples) is one of those: pure data movement
-``transposing`` a fusion that computes something and transposes inside (the transpose is not
-               its root): its bytes are those that pass through the transposes, read and written
-``copy``       a ``copy`` keeping its layout, ``copy-start``: a memcpy
+``matmul``     a cuBLAS call (``__cublas$gemm``, ``__cublas$lt$matmul``), a cuDNN convolution, a
+               ``dot`` or a fusion with a ``dot`` inside (XLA's Triton GEMM fusions,
+               ``__triton_gemm``); with its FLOPs, 2·M·N·K from the dot's dimensions
+``attention``  a cuDNN attention call (``__cudnn$fmha...``)
+``pallas``     a Pallas kernel lowered through Triton (``__gpu$xla.gpu.triton``), listed under its
+               ``name=`` (``wmjax_dense_gelu``, ``layer_norm_modulate``, ...)
 ``memcpy``     a ``dynamic-slice`` or ``dynamic-update-slice`` that XLA's GPU compiler made a
                ``dynamic_slice_fusion`` custom fusion: a device-to-device memcpy at an offset
                computed on the host (the ``memcpy128`` kernels of a GPU profile). In a scan over
                layers these write each layer's residuals into the ``[layers, ...]`` stacks
 ``slice``      any other fusion whose root is a ``dynamic-slice`` or ``dynamic-update-slice``
                (a kernel: reading one layer's slice of those stacks, say)
+``transpose``  a ``transpose``, a ``copy`` that changes the layout, or a fusion whose root (through
+               bitcasts, converts and multi-output tuples) is one of those: pure data movement
+``transposing`` a fusion that computes something and transposes inside (the transpose is not
+               its root)
+``copy``       a ``copy`` keeping its layout, ``copy-start``: a memcpy
+``reduction``  a fusion with a ``reduce`` inside (XLA's ``kInput`` reduction fusions and its
+               Triton normalization / softmax fusions), an unfused ``reduce``
+``elementwise`` any other ``kLoop`` fusion or Triton (``__triton``) fusion
+``collective`` an all-reduce, all-gather, reduce-scatter, all-to-all, collective-permute,
+               send or recv
+``other``      any other kernel: concatenate and scatter fusions, other custom calls, unfused ops
 
 Instructions in a ``while`` body count once per iteration (``known_trip_count``; 1 when XLA does
 not know it), so a scan over 14 layers counts its body 14 times. Bytes moved are bytes written
-plus bytes read: the output (for a ``dynamic-update-slice`` root the update) and the fusion's
-operands (for a slice root the slice itself, not the whole buffer). The table groups kernels by
-class, output shape and the JAX op (``op_name`` metadata) they came from.
+plus bytes read: the output (for a ``dynamic-update-slice`` root the update; for a custom call
+not its scratch workspace, a trailing ``s8[n]`` / ``u8[n]``) and the operands (for a slice root
+the slice itself, not the whole buffer). The bytes of a kernel that tiles its operands and reads
+them more than once (a matmul, a Pallas kernel) are what it would move reading each once, a lower
+bound on its traffic. The table groups kernels by class, output shape and the JAX op (``op_name``
+metadata) they came from; the summary after it adds up each class, the total, and the total
+outside the matmuls (the Pallas kernels' own matmuls included there).
 """
 
 from __future__ import annotations
@@ -51,9 +69,26 @@ _CALLS = re.compile(r"\b(calls|body|condition|to_apply|true_computation|false_co
 _BRANCHES = re.compile(r"\b(?:branch_computations|called_computations)=\{([^}]*)\}")
 _TRIP = re.compile(r'"known_trip_count":\{"n":"(\d+)"')
 _OP_NAME = re.compile(r'op_name="([^"]*)"')
-CLASSES = ("transpose", "transposing", "copy", "memcpy", "slice")
-# Ops a fusion root is looked through to find what the kernel does.
+_TARGET = re.compile(r'custom_call_target="([^"]*)"')
+_PALLAS_NAME = re.compile(r'\bname = "([\w.\-]+)"')
+_CONTRACTING = re.compile(r'(?:lhs_contracting_dims=\{|"lhs_contracting_dimensions":\[)([^}\]]*)')
+CLASSES = ("matmul", "attention", "pallas", "memcpy", "slice", "transpose", "transposing", "copy",
+           "reduction", "elementwise", "collective", "other")
+# Ops a fusion root is looked through to find what the kernel does (and copies keeping the layout).
 _THROUGH = ("bitcast", "convert", "tuple", "get-tuple-element")
+# Kernel-level ops that launch no kernel: bookkeeping, control flow (whose bodies are counted on
+# their own), the second halves of asynchronous pairs.
+_NO_KERNEL = ("parameter", "constant", "get-tuple-element", "tuple", "bitcast", "while",
+              "conditional", "call", "after-all", "add-dependency", "opt-barrier", "domain",
+              "partition-id", "replica-id", "async-start", "async-update", "async-done",
+              "copy-done", "all-reduce-done", "all-gather-done", "collective-permute-done",
+              "send-done", "recv-done")
+_COLLECTIVE = ("all-reduce", "all-reduce-start", "all-gather", "all-gather-start", "reduce-scatter",
+               "all-to-all", "ragged-all-to-all", "collective-permute", "collective-permute-start",
+               "collective-broadcast", "send", "recv")
+# Custom-call targets by prefix: (prefix, class).
+_TARGETS = (("__cublas$", "matmul"), ("__cudnn$conv", "matmul"), ("__cudnn$fmha", "attention"),
+            ("__gpu$xla.gpu.triton", "pallas"))
 
 
 @dataclasses.dataclass
@@ -142,20 +177,22 @@ def arrays(shape: str) -> list[tuple[str, tuple[int, ...], str]]:
           for dtype, dims, layout in _ARRAY.findall(shape) if dtype in BYTES]
 
 
+def _elements(dims: tuple[int, ...]) -> int:
+  count = 1
+  for d in dims:
+    count *= d
+  return count
+
+
 def nbytes(shape: str) -> int:
-  total = 0
-  for dtype, dims, _ in arrays(shape):
-    size = BYTES[dtype]
-    for d in dims:
-      size *= d
-    total += size
-  return total
+  return sum(BYTES[dtype] * _elements(dims) for dtype, dims, _ in arrays(shape))
 
 
 def executions(computations: dict[str, list[Instruction]], entry: str) -> dict[str, int]:
   """How many times each kernel-level computation runs per execution of ``entry``: ``while``
   bodies and conditions times their known trip count, called computations as often as their
-  caller. Fusion computations are left out (their instructions are not kernels)."""
+  caller. Fusion computations and those applied element by element (``to_apply=`` of a reduce,
+  an all-reduce, a sort) are left out: their instructions are not kernels."""
   counts = collections.Counter({entry: 1})
   order = [entry]
   for name in order:
@@ -164,7 +201,8 @@ def executions(computations: dict[str, list[Instruction]], entry: str) -> dict[s
         continue
       trip = _TRIP.search(inst.attributes)
       times = counts[name] * (int(trip.group(1)) if inst.opcode == "while" and trip else 1)
-      callees = [m.group(2) for m in _CALLS.finditer(inst.attributes)]
+      callees = [m.group(2) for m in _CALLS.finditer(inst.attributes)
+                 if m.group(1) != "to_apply" or inst.opcode == "call"]
       for group in _BRANCHES.findall(inst.attributes):
         callees += [c.strip().lstrip("%") for c in group.split(",") if c.strip()]
       for callee in callees:
@@ -180,12 +218,14 @@ def _root(body: list[Instruction]) -> Instruction:
 
 
 def _heroes(body: list[Instruction]) -> list[Instruction]:
-  """What a fused computation's root does, looking through bitcasts, converts and tuples."""
+  """What a fused computation's root does, looking through bitcasts, converts, tuples and copies
+  that keep the layout."""
   named = {i.name: i for i in body}
+  shapes = {i.name: i.shape for i in body}
   found, todo = [], [_root(body)]
   while todo:
     inst = todo.pop()
-    if inst.opcode in _THROUGH:
+    if inst.opcode in _THROUGH or (inst.opcode == "copy" and not _layout_changes(inst, shapes)):
       todo += [named[o] for o in inst.operands if o in named]
     else:
       found.append(inst)
@@ -198,40 +238,103 @@ def _layout_changes(inst: Instruction, shapes: dict[str, str]) -> bool:
   return not source or source[0][2] != arrays(inst.shape)[0][2]
 
 
+@dataclasses.dataclass
+class Kernel:
+  """What one kernel-level instruction does per execution: its class, bytes written and read,
+  FLOPs (matmuls only) and, for a Pallas kernel, its name."""
+
+  cls: str
+  written: int
+  read: int
+  flops: int = 0
+  name: str | None = None
+
+
+def _written(inst: Instruction) -> int:
+  """Bytes of an instruction's output; a custom call's trailing scratch buffer (``s8[n]``, ``u8[n]``
+  of a cuBLAS or cuDNN call's output tuple) is workspace, not output."""
+  outputs = arrays(inst.shape)
+  if (inst.opcode == "custom-call" and len(outputs) > 1 and outputs[-1][0] in ("s8", "u8")
+      and len(outputs[-1][1]) == 1):
+    outputs = outputs[:-1]
+  return sum(BYTES[dtype] * _elements(dims) for dtype, dims, _ in outputs)
+
+
+def _flops(inst: Instruction, shapes: dict[str, str]) -> int:
+  """2·M·N·K of a ``dot`` or cuBLAS call: twice its output's elements times the contracted size."""
+  contracting = _CONTRACTING.search(inst.attributes)
+  lhs = arrays(shapes.get(inst.operands[0], "")) if inst.operands else []
+  if not contracting or not lhs or not arrays(inst.shape):
+    return 0
+  k = _elements(tuple(lhs[0][1][int(d.strip(' "'))] for d in contracting.group(1).split(",")
+                      if d.strip(' "')))
+  return 2 * _elements(arrays(inst.shape)[0][1]) * k
+
+
+def _target_class(inst: Instruction) -> str | None:
+  target = _TARGET.search(inst.attributes)
+  return next((cls for prefix, cls in _TARGETS
+               if target and target.group(1).startswith(prefix)), None)
+
+
 def classify(inst: Instruction, computations: dict[str, list[Instruction]],
-             shapes: dict[str, str]) -> tuple[str, int, int] | None:
-  """``(class, bytes written, bytes read)`` of a kernel-level instruction, None when it is none
-  of :data:`CLASSES`."""
-  written = nbytes(inst.shape)
-  read = sum(nbytes(shapes.get(o, "")) for o in inst.operands)
-  if inst.opcode == "transpose":
-    return "transpose", written, read
-  if inst.opcode == "copy":
-    return ("transpose" if _layout_changes(inst, shapes) else "copy"), written, read
-  if inst.opcode == "copy-start":
-    return "copy", read, read  # its output is (source, destination, context)
-  if inst.opcode != "fusion":
+             shapes: dict[str, str]) -> Kernel | None:
+  """The :class:`Kernel` of a kernel-level instruction, None for one that launches no kernel."""
+  if inst.opcode in _NO_KERNEL:
     return None
+  written = _written(inst)
+  if inst.opcode == "fusion":
+    return _classify_fusion(inst, computations, written)
+  read = sum(nbytes(shapes.get(o, "")) for o in inst.operands)
+  if inst.opcode == "dot":
+    return Kernel("matmul", written, read, _flops(inst, shapes))
+  if inst.opcode == "custom-call":
+    cls = _target_class(inst) or "other"
+    if cls == "pallas":
+      name = _PALLAS_NAME.search(inst.attributes)
+      return Kernel(cls, written, read, name=name.group(1) if name else None)
+    return Kernel(cls, written, read, _flops(inst, shapes) if cls == "matmul" else 0)
+  if inst.opcode == "transpose":
+    return Kernel("transpose", written, read)
+  if inst.opcode == "copy":
+    return Kernel("transpose" if _layout_changes(inst, shapes) else "copy", written, read)
+  if inst.opcode == "copy-start":
+    return Kernel("copy", read, read)  # its output is (source, destination, context)
+  if inst.opcode in _COLLECTIVE:
+    if inst.opcode in ("all-gather-start", "collective-permute-start"):
+      written -= read  # their output tuple repeats the operands before the results
+    return Kernel("collective", written, read)
+  return Kernel("reduction" if inst.opcode == "reduce" else "other", written, read)
+
+
+def _classify_fusion(inst: Instruction, computations: dict[str, list[Instruction]],
+                     written: int) -> Kernel:
+  """The :class:`Kernel` of a fusion, from the instructions of its fused computation."""
   called = _CALLS.search(inst.attributes)
   body = computations.get(called.group(2), []) if called else []
-  if not body:
-    return None
   fused_shapes = {i.name: i.shape for i in body}
   read = _fusion_reads(body)
-  heroes = _heroes(body)
+  matmuls = [i for i in body if i.opcode == "dot" or (i.opcode == "custom-call"
+                                                      and _target_class(i) == "matmul")]
+  if matmuls:
+    return Kernel("matmul", written, read, sum(_flops(i, fused_shapes) for i in matmuls))
+  heroes = _heroes(body) if body else []
   slices = [h for h in heroes if h.opcode in ("dynamic-slice", "dynamic-update-slice")]
   if slices:
     moved = sum(nbytes(fused_shapes.get(h.operands[1], "")) if h.opcode == "dynamic-update-slice"
                 else nbytes(h.shape) for h in slices)
     custom = '"name":"dynamic_slice_fusion"' in inst.attributes
-    return ("memcpy" if custom else "slice"), moved, moved
+    return Kernel("memcpy" if custom else "slice", moved, moved)
   if any(h.opcode == "transpose" or (h.opcode == "copy" and _layout_changes(h, fused_shapes))
          for h in heroes):
-    return "transpose", written, read
-  transposed = sum(nbytes(i.shape) for i in body if i.opcode == "transpose")
-  if transposed:
-    return "transposing", transposed, transposed
-  return None
+    return Kernel("transpose", written, read)
+  if any(i.opcode == "transpose" for i in body):
+    return Kernel("transposing", written, read)
+  if any(i.opcode == "reduce" for i in body):
+    return Kernel("reduction", written, read)
+  if "kind=kLoop" in inst.attributes or '"kind":"__triton"' in inst.attributes:
+    return Kernel("elementwise", written, read)
+  return Kernel("other", written, read)
 
 
 def _fusion_reads(body: list[Instruction]) -> int:
@@ -260,34 +363,36 @@ def _fusion_reads(body: list[Instruction]) -> int:
 
 @dataclasses.dataclass
 class Row:
-  """Kernels of one class, output shape and JAX op: ``count`` executions per run, bytes moved."""
+  """Kernels of one class, output shape and JAX op (a Pallas kernel's name): ``count`` executions
+  per run, bytes moved, FLOPs."""
 
   cls: str
   shape: str
   op: str
   count: int = 0
   moved: int = 0
+  flops: int = 0
 
 
 def analyze(text: str) -> list[Row]:
-  """The transpose / copy kernels of an optimized HLO module, grouped, most bytes first."""
+  """The kernels of an optimized HLO module, grouped, most bytes first."""
   computations, entry = parse_module(text)
   rows: dict[tuple[str, str, str], Row] = {}
   for name, times in executions(computations, entry).items():
     body = computations[name]
     shapes = {i.name: i.shape for i in body}
     for inst in body:
-      found = classify(inst, computations, shapes)
-      if found is None:
+      kernel = classify(inst, computations, shapes)
+      if kernel is None:
         continue
-      cls, written, read = found
       op_name = _OP_NAME.search(inst.attributes)
+      op = kernel.name or (_short_op(op_name.group(1)) if op_name else "?")
       shape = " ".join(f"{dtype}[{','.join(map(str, dims))}]{layout}"
                        for dtype, dims, layout in arrays(inst.shape))
-      key = (cls, shape, _short_op(op_name.group(1)) if op_name else "?")
-      row = rows.setdefault(key, Row(*key))
+      row = rows.setdefault((kernel.cls, shape, op), Row(kernel.cls, shape, op))
       row.count += times
-      row.moved += times * (written + read)
+      row.moved += times * (kernel.written + kernel.read)
+      row.flops += times * kernel.flops
   return sorted(rows.values(), key=lambda r: -r.moved)
 
 
@@ -301,22 +406,29 @@ def _short_op(op_name: str) -> str:
 
 
 def summary(rows: list[Row]) -> dict[str, dict[str, float]]:
-  """``{class: {'kernels': executions per run, 'gb': GB moved per run}}`` and their total."""
-  out = {cls: {"kernels": 0, "gb": 0.0} for cls in CLASSES + ("total",)}
+  """``{class: {'kernels': executions per run, 'gb': GB moved per run, 'tflop': TFLOPs per run}}``
+  for every class, their ``total`` and the total ``outside matmul``."""
+  out = {cls: {"kernels": 0, "gb": 0.0, "tflop": 0.0}
+         for cls in CLASSES + ("total", "outside matmul")}
   for row in rows:
-    for cls in (row.cls, "total"):
+    for cls in (row.cls, "total") + (() if row.cls == "matmul" else ("outside matmul",)):
       out[cls]["kernels"] += row.count
       out[cls]["gb"] += row.moved / 1e9
+      out[cls]["tflop"] += row.flops / 1e12
   return out
 
 
 def report(rows: list[Row], top: int) -> str:
-  lines = [f"{'class':<12}{'count':>6}{'GB':>9}  {'shape':<44}op"]
-  for row in rows[:top]:
-    lines.append(f"{row.cls:<12}{row.count:>6}{row.moved / 1e9:>9.3f}  {row.shape:<44}{row.op}")
-  lines.append("")
+  """The ``top`` rows, most bytes first (none for ``top=0``), then the summary by class."""
+  lines = []
+  if top:
+    lines.append(f"{'class':<12}{'count':>6}{'GB':>9}  {'shape':<44}op")
+    for row in rows[:top]:
+      lines.append(f"{row.cls:<12}{row.count:>6}{row.moved / 1e9:>9.3f}  {row.shape:<44}{row.op}")
+    lines.append("")
+  lines.append(f"{'class':<15}{'kernels':>8}{'GB':>10}{'TFLOP':>9}")
   for cls, s in summary(rows).items():
-    lines.append(f"{cls:<12}{s['kernels']:>6}{s['gb']:>9.3f}")
+    lines.append(f"{cls:<15}{s['kernels']:>8}{s['gb']:>10.3f}{s['tflop']:>9.1f}")
   return "\n".join(lines)
 
 
@@ -342,7 +454,10 @@ def main() -> None:
   parser.add_argument("--batch", type=int, default=None)
   parser.add_argument("--save_hlo", default=None, help="also write the compiled HLO text here")
   parser.add_argument("--top", type=int, default=40, help="table rows (most bytes first)")
-  parser.add_argument("--json", action="store_true", help="print the summary as JSON too")
+  parser.add_argument("--summary", action="store_true", help="print the summary by class only")
+  parser.add_argument("--json", nargs="?", const="-", default=None, metavar="FILE",
+                      help="also write the summary and the top rows as JSON to FILE (stdout "
+                           "without FILE)")
   args, overrides = parse_args_with_overrides(parser)
   memory = None
   if args.hlo:
@@ -356,13 +471,19 @@ def main() -> None:
   else:
     sys.exit("hlo_ops: give --hlo FILE or --config CONFIG")
   rows = analyze(text)
-  print(report(rows, args.top))
+  print(report(rows, 0 if args.summary else args.top))
   if memory is not None:
     print(f"compiled memory per device: {memory['total_gib']:.2f} GiB "
           f"(temporaries {memory['temp_gib']:.2f} GiB)")
   if args.json:
-    print(json.dumps({"summary": summary(rows),
-                      "total_gib": None if memory is None else memory["total_gib"]}))
+    found = json.dumps({"summary": summary(rows),
+                        "rows": [dataclasses.asdict(row) for row in rows[:args.top]],
+                        "total_gib": None if memory is None else memory["total_gib"]}, indent=1)
+    if args.json == "-":
+      print(found)
+    else:
+      with open(args.json, "w") as f:
+        f.write(found + "\n")
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
-"""benchmarks/hlo_ops.py: transpose / copy / slice kernels of optimized HLO, loop bodies counted
-once per iteration, bytes of slices counted as the slice."""
+"""benchmarks/hlo_ops.py: every kernel of optimized HLO in its class (matmuls, attention, Pallas
+kernels, transposes, copies, slices, reductions, elementwise, collectives), loop bodies counted
+once per iteration, bytes of slices counted as the slice, FLOPs of matmuls."""
 
 import sys
 
@@ -14,8 +15,12 @@ import hlo_ops  # noqa: E402
 
 # A loop of 5 iterations that transposes an f32[8,4] (a transpose fusion), scales it (a fusion
 # with a transpose inside that is not its root), stacks a row into f32[5,4,8] (a dynamic-update-
-# slice fusion that runs as a memcpy) and copies it to another layout; after the loop one plain copy. HLO text has one
-# instruction a line: the lines continued here (indented 6) are joined below.
+# slice fusion that runs as a memcpy), reads a row back (a dynamic-slice memcpy, copied at its
+# root), copies the f32[8,4] to another layout, multiplies it by its transpose (cuBLAS, with a
+# workspace in its output) and runs a Pallas kernel on it. After the loop: cuDNN attention, a
+# Triton GEMM fusion that transposes inside, an elementwise and a reduction fusion, an all-reduce
+# (whose reducer is no kernel) and one plain copy. HLO text has one instruction a line: the lines
+# continued here (indented 6) are joined below.
 MODULE = """HloModule m
 
 %fused_transpose (param_0: f32[8,4]) -> f32[4,8] {
@@ -41,6 +46,34 @@ MODULE = """HloModule m
       %constant.2, %constant.2)
 }
 
+%fused_ds (param_0.3: f32[5,4,8], param_1.3: s32[]) -> f32[1,4,8] {
+  %param_0.3 = f32[5,4,8]{2,1,0} parameter(0)
+  %param_1.3 = s32[] parameter(1)
+  %constant.3 = s32[] constant(0)
+  %ds.1 = f32[1,4,8]{2,1,0} dynamic-slice(%param_0.3, %param_1.3, %constant.3, %constant.3),
+      dynamic_slice_sizes={1,4,8}
+  ROOT %copy.3 = f32[1,4,8]{2,1,0} copy(%ds.1)
+}
+
+%fused_gemm (param_0.4: f32[8,4], param_1.4: f32[8,4]) -> f32[8,8] {
+  %param_0.4 = f32[8,4]{1,0} parameter(0)
+  %param_1.4 = f32[8,4]{1,0} parameter(1)
+  %transpose.3 = f32[4,8]{1,0} transpose(%param_1.4), dimensions={1,0}
+  ROOT %dot.1 = f32[8,8]{1,0} dot(%param_0.4, %transpose.3), lhs_contracting_dims={1},
+      rhs_contracting_dims={0}
+}
+
+%fused_gelu (param_0.5: f32[8,4]) -> f32[8,4] {
+  %param_0.5 = f32[8,4]{1,0} parameter(0)
+  ROOT %tanh.1 = f32[8,4]{1,0} tanh(%param_0.5)
+}
+
+%fused_rowsum (param_0.6: f32[8,4]) -> f32[8] {
+  %param_0.6 = f32[8,4]{1,0} parameter(0)
+  %constant.6 = f32[] constant(0)
+  ROOT %reduce.2 = f32[8]{0} reduce(%param_0.6, %constant.6), dimensions={1}, to_apply=%add
+}
+
 %add (a: f32[], b: f32[]) -> f32[] {
   %a = f32[] parameter(0)
   %b = f32[] parameter(1)
@@ -60,7 +93,20 @@ MODULE = """HloModule m
       metadata={op_name="jit(f)/while/body/dynamic_update_slice"},
       backend_config={"fusion_backend_config":{"kind":"__custom_fusion",
       "custom_fusion_config":{"name":"dynamic_slice_fusion","kernel_index":0}}}
+  %fusion.4 = f32[1,4,8]{2,1,0} fusion(%stack, %i), kind=kCustom, calls=%fused_ds,
+      metadata={op_name="jit(f)/while/body/dynamic_slice"},
+      backend_config={"fusion_backend_config":{"kind":"__custom_fusion",
+      "custom_fusion_config":{"name":"dynamic_slice_fusion","kernel_index":0}}}
   %copy.1 = f32[8,4]{0,1} copy(%x)
+  %gemm = (f32[8,8]{1,0}, s8[1024]{0}) custom-call(%x, %fusion.1),
+      custom_call_target="__cublas$lt$matmul",
+      metadata={op_name="jit(f)/while/body/layers/mlp/dot_general"},
+      backend_config={"gemm_backend_config":{"dot_dimension_numbers":{
+      "lhs_contracting_dimensions":["1"],"rhs_contracting_dimensions":["0"]}}}
+  %pallas = f32[8,4]{1,0} custom-call(%x), custom_call_target="__gpu$xla.gpu.triton",
+      api_version=API_VERSION_TYPED_FFI,
+      metadata={op_name="jit(f)/while/body/layers/mlp/wmjax_dense_gelu/pallas_call"},
+      backend_config={debug = false, ir = "ML\\EFR", name = "wmjax_dense_gelu", num_warps = 4 : i32}
   ROOT %t = (s32[], f32[8,4]{1,0}, f32[5,4,8]{2,1,0}) tuple(%i, %x, %fusion.3)
 }
 
@@ -77,6 +123,18 @@ ENTRY %main (x.1: f32[8,4], s.1: f32[5,4,8]) -> f32[5,4,8] {
   %while.1 = (s32[], f32[8,4]{1,0}, f32[5,4,8]{2,1,0}) while(%init), condition=%cond,
       body=%body, backend_config={"known_trip_count":{"n":"5"}}
   %out = f32[5,4,8]{2,1,0} get-tuple-element(%while.1), index=2
+  %q = f32[1,4,8]{2,1,0} bitcast(%x.1)
+  %attn = (f32[1,4,8]{2,1,0}, f32[1,4]{1,0}, u8[0]{0}) custom-call(%q, %q, %q),
+      custom_call_target="__cudnn$fmhaSoftmax", metadata={op_name="jit(f)/attn/fmha"}
+  %qk = f32[8,8]{1,0} fusion(%x.1, %x.1), kind=kCustom, calls=%fused_gemm,
+      metadata={op_name="jit(f)/attn/qk"},
+      backend_config={"fusion_backend_config":{"kind":"__triton_gemm"}}
+  %gelu = f32[8,4]{1,0} fusion(%x.1), kind=kLoop, calls=%fused_gelu,
+      metadata={op_name="jit(f)/mlp/gelu"}
+  %rowsum = f32[8]{0} fusion(%gelu), kind=kInput, calls=%fused_rowsum,
+      metadata={op_name="jit(f)/norm/reduce_sum"}
+  %ar = f32[8,4]{1,0} all-reduce(%gelu), replica_groups={}, to_apply=%add,
+      metadata={op_name="jit(f)/psum"}
   ROOT %copy.2 = f32[5,4,8]{2,1,0} copy(%out)
 }
 """.replace("\n      ", " ")
@@ -84,17 +142,32 @@ ENTRY %main (x.1: f32[8,4], s.1: f32[5,4,8]) -> f32[5,4,8] {
 
 def test_kernels_are_classified_and_loop_bodies_counted_per_iteration():
   rows = {(row.cls, row.op): row for row in hlo_ops.analyze(MODULE)}
-  tile = 8 * 4 * 4  # bytes of one f32[8,4]
+  tile = 8 * 4 * 4  # bytes of one f32[8,4] (or f32[4,8], f32[1,4,8])
   transpose = rows["transpose", "layers/attn/transpose"]
   assert (transpose.count, transpose.moved) == (5, 5 * 2 * tile)
   layout_copy = rows["transpose", "?"]  # the copy to layout {0,1}
   assert (layout_copy.count, layout_copy.moved) == (5, 5 * 2 * tile)
-  scale = rows["transposing", "layers/scale"]
-  assert (scale.count, scale.moved) == (5, 5 * 2 * tile)
+  scale = rows["transposing", "layers/scale"]  # reads f32[8,4], writes f32[4]
+  assert (scale.count, scale.moved) == (5, 5 * (tile + 16))
   stack = rows["memcpy", "dynamic_update_slice"]  # the row written, not the whole stack
   assert (stack.count, stack.moved) == (5, 5 * 2 * tile)
+  row = rows["memcpy", "dynamic_slice"]  # the row read, not the whole stack
+  assert (row.count, row.moved) == (5, 5 * 2 * tile)
   memcpy = rows["copy", "?"]
   assert (memcpy.count, memcpy.moved) == (1, 2 * 5 * tile)
+  gemm = rows["matmul", "layers/mlp/dot_general"]  # writes f32[8,8], not its s8 workspace
+  assert (gemm.count, gemm.moved, gemm.flops) == (5, 5 * 4 * tile, 5 * 2 * 8 * 8 * 4)
+  qk = rows["matmul", "attn/qk"]  # a GEMM fusion, though it transposes inside
+  assert (qk.count, qk.moved, qk.flops) == (1, 4 * tile, 2 * 8 * 8 * 4)
+  pallas = rows["pallas", "wmjax_dense_gelu"]
+  assert (pallas.count, pallas.moved) == (5, 5 * 2 * tile)
+  assert rows["attention", "attn/fmha"].moved == 3 * tile + tile + 16
+  assert rows["elementwise", "mlp/gelu"].moved == 2 * tile
+  assert rows["reduction", "norm/reduce_sum"].moved == tile + 32
+  assert rows["collective", "psum"].moved == 2 * tile
+  assert not any(cls == "other" for cls, _ in rows)  # the all-reduce's reducer is no kernel
   summary = hlo_ops.summary(list(rows.values()))
-  assert summary["total"]["kernels"] == 21
+  assert summary["total"]["kernels"] == 41
+  assert summary["outside matmul"]["kernels"] == 35
   assert summary["transpose"]["gb"] == pytest.approx(20 * tile / 1e9)
+  assert summary["matmul"]["tflop"] == pytest.approx(6 * 512 / 1e12)
