@@ -11,11 +11,17 @@
 #   benchmarks/gpu_suite.sh rollout  # batch-8 rollouts: frames/s at 59 calls per block (PNDM-50's
 #                                    # cost) and at DDIM-10; WPE with and without the KV cache
 #   benchmarks/gpu_suite.sh all
-#   benchmarks/gpu_suite.sh kernels-xl   # the fused kernels (wmjax.nn.kernels): the MLP kernels
-#                                        # alone at XL/2's shape (tile settings side by side),
-#                                        # then XL/2's train step with each kernel off and on,
-#                                        # and its 59-call rollout (about 8 minutes on one H100)
-#   benchmarks/gpu_suite.sh kernels-wpe  # the same for WPE-600M's train step and rollout
+#
+# The fused kernels (wmjax.nn.kernels), parts that may be named together in one call:
+#   benchmarks/gpu_suite.sh kernels-mlp       # the MLP kernels alone at XL/2's shape against
+#                                             # XLA, tile settings side by side (~2 min); later
+#                                             # parts of the same call take the fastest tiles
+#   benchmarks/gpu_suite.sh kernels-xl-train  # XL/2's train step: baseline, MLP kernel, both
+#                                             # kernels, both unrolled (~4.5 min)
+#   benchmarks/gpu_suite.sh kernels-wpe-train # the same for WPE-600M (~4.5 min)
+#   benchmarks/gpu_suite.sh kernels-rollout   # 59-call rollouts of both, baseline vs both
+#                                             # kernels (~4 min)
+# e.g. `gpu_suite.sh kernels-mlp kernels-xl-train` within one 10-minute command.
 #
 # On a machine with no package index (the lent GPU machines), carry .whl/core
 # (experiments/pusht/device_wheels.sh) and start the command with
@@ -91,8 +97,8 @@ setting_flags() {  # "k=v k=v" -> --config.model.k=v ... in flags, -v-v in tag
   for kv in $1; do flags+=("--config.model.$kv"); tag+="-${kv#*=}"; done
 }
 
-kernel_runs() {  # NAME CONFIG ROLLOUT_ARGS...: each setting's train step, then rollouts; a
-  local name=$1 spec=$2 setting flags tag; shift 2  # failing one (out of memory) is reported
+train_runs() {  # NAME CONFIG: the train step of each TRAIN_SETTINGS; a failing one (out of
+  local name=$1 spec=$2 setting flags tag  # memory, say) is reported and the next one runs
   local blocks=(${MLP_BLOCKS})
   for setting in "${TRAIN_SETTINGS[@]}"; do
     setting_flags "$setting"
@@ -103,11 +109,16 @@ kernel_runs() {  # NAME CONFIG ROLLOUT_ARGS...: each setting's train step, then 
       && grep -E '"(step_ms|mfu)"' "$out/kernels-train-$name$tag-$platform.json" \
       || { echo "train step failed:"; tail -3 "$traces-$name$tag-train.log"; }
   done
+}
+
+rollout_runs() {  # NAME CONFIG FORWARD_ROLLOUT_ARGS...: 59-call rollouts of ROLLOUT_SETTINGS
+  local name=$1 spec=$2 setting flags tag; shift 2
+  local blocks=(${MLP_BLOCKS})
   for setting in "${ROLLOUT_SETTINGS[@]}"; do
     setting_flags "$setting"
     echo "== $name rollout $setting"
     $py benchmarks/forward_rollout.py --config "$spec" "${fast[@]}" "${flags[@]}" \
-        --config.sampling.num_steps=59 --batch 8 --repeats 2 "$@" \
+        --config.sampling.num_steps=59 --batch 8 --repeats 2 --mlp_blocks "${blocks[0]}" "$@" \
         --out "$out/kernels-rollout-$name$tag-$platform.json" > "$traces-$name$tag-roll.log" 2>&1 \
       && grep -E '"rollout_frames_per_s"' "$out/kernels-rollout-$name$tag-$platform.json" \
       || { echo "rollout failed:"; tail -3 "$traces-$name$tag-roll.log"; }
@@ -121,23 +132,29 @@ b = min(runs, key=lambda r: r["ms"])["blocks"] if runs else None
 print(",".join(str(b[k]) for k in ("rows", "cols", "depth", "warps", "stages")) if b else "")' "$1"
 }
 
-kernels_xl() {
+kernels_mlp() {
   local blocks=() b best
   for b in ${MLP_BLOCKS}; do blocks+=(--blocks "$b"); done
   $py benchmarks/mlp_kernel.py --rows 81920 --width 1152 "${blocks[@]}" \
       --out "$out/kernels-mlp-xl-$platform.json" 2>&1 | grep -E '^\{"impl"|Error' || true
   best=$(fastest_blocks "$out/kernels-mlp-xl-$platform.json" 2>/dev/null || true)
-  # the steps below take the fastest tiles found (the order of MLP_BLOCKS otherwise)
-  [[ -n $best ]] && MLP_BLOCKS="$best ${MLP_BLOCKS}" && echo "MLP tiles: $best"
-  kernel_runs xl configs/irasim.py:XL --frames 15
+  # the parts after this one take the fastest tiles found (the first of MLP_BLOCKS otherwise)
+  if [[ -n $best ]]; then MLP_BLOCKS="$best ${MLP_BLOCKS}"; echo "MLP tiles: $best"; fi
 }
 
-case "${1:-all}" in
-  kernels-xl) kernels_xl ;;
-  kernels-wpe) kernel_runs wpe configs/wpe_600m.py --frames 18 ;;
-  check) check ;;
-  train) train ;;
-  rollout) rollout ;;
-  all) train; rollout ;;
-  *) echo "usage: $0 [check|train|rollout|all|kernels-xl|kernels-wpe]" >&2; exit 2 ;;
-esac
+[[ $# -gt 0 ]] || set -- all
+for part in "$@"; do
+  case "$part" in
+    kernels-mlp) kernels_mlp ;;
+    kernels-xl-train) train_runs xl configs/irasim.py:XL ;;
+    kernels-wpe-train) train_runs wpe configs/wpe_600m.py ;;
+    kernels-rollout) rollout_runs xl configs/irasim.py:XL --frames 15
+                     rollout_runs wpe configs/wpe_600m.py --frames 18 ;;
+    check) check ;;
+    train) train ;;
+    rollout) rollout ;;
+    all) train; rollout ;;
+    *) echo "usage: $0 [check|train|rollout|all|kernels-mlp|kernels-xl-train|kernels-wpe-train|"\
+            "kernels-rollout ...]" >&2; exit 2 ;;
+  esac
+done
