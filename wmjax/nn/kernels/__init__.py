@@ -50,6 +50,10 @@ def interpret(platform: str | None = None) -> bool:
 
 
 def per_device(fn, in_specs, out_specs):
-  """``fn`` run once per device of the current mesh through ``shard_map``, with these specs."""
-  return jax.shard_map(fn, mesh=jax.sharding.get_abstract_mesh(), in_specs=in_specs,
-                       out_specs=out_specs, check_vma=False)
+  """``fn`` run once per device of the current mesh through ``shard_map``, with these specs; ``fn``
+  itself off a mesh or when no spec splits anything (every device would see the whole input)."""
+  mesh = jax.sharding.get_abstract_mesh()
+  if mesh.empty or not any(axis is not None for spec in jax.tree.leaves(
+      (in_specs, out_specs), is_leaf=lambda x: isinstance(x, P)) for axis in spec):
+    return fn
+  return jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False)

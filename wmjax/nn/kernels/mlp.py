@@ -185,8 +185,6 @@ def dense_gelu(x: jax.Array, w: jax.Array, b: jax.Array, blocks: Blocks = Blocks
   local = functools.partial(_dense_gelu_local, blocks=blocks, interpret=interpret,
                             keep_pre=keep_pre)
   rows, width = kernels.split_axes(x.shape[0], w.shape[1])
-  if rows is None and width is None:
-    return local(x, w, b)
   spec = kernels.P(rows, width)
   return kernels.per_device(local, in_specs=(kernels.P(rows, None), kernels.P(None, width),
                                              kernels.P(width)),
@@ -201,8 +199,6 @@ def dense_gelu_backward(g: jax.Array, w: jax.Array, pre: jax.Array, blocks: Bloc
   interpret = kernels.interpret() if interpret is None else interpret
   local = functools.partial(_gelu_backward_local, blocks=blocks, interpret=interpret)
   rows, width = kernels.split_axes(g.shape[0], w.shape[0])
-  if rows is None and width is None:
-    return local(g, w, pre)
   spec = kernels.P(rows, width)
   return kernels.per_device(local, in_specs=(kernels.P(rows, None), kernels.P(width, None), spec),
                             out_specs=(spec, spec))(g, w, pre)

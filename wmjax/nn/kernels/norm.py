@@ -35,12 +35,17 @@ TILE_ELEMENTS = 8192  # float32 elements of one (rows x padded D) tile a kernel 
 BLOCK_ROWS = 64  # rows per backward program, whose shift / scale gradients it sums
 
 
-def layer_norm(x: jax.Array) -> jax.Array:
-  """LayerNorm without affine parameters (eps 1e-6), computed in float32."""
+def _standardise(x: jax.Array) -> jax.Array:
+  """``(x - mean) / sqrt(var + EPS)`` over the last axis, in float32."""
   x32 = x.astype(jnp.float32)
   mean = x32.mean(-1, keepdims=True)
   var = jnp.square(x32 - mean).mean(-1, keepdims=True)
-  return ((x32 - mean) * jax.lax.rsqrt(var + EPS)).astype(x.dtype)
+  return (x32 - mean) * jax.lax.rsqrt(var + EPS)
+
+
+def layer_norm(x: jax.Array) -> jax.Array:
+  """LayerNorm without affine parameters (eps 1e-6), computed in float32."""
+  return _standardise(x).astype(x.dtype)
 
 
 def modulate(x: jax.Array, shift: jax.Array, scale: jax.Array) -> jax.Array:
@@ -50,10 +55,7 @@ def modulate(x: jax.Array, shift: jax.Array, scale: jax.Array) -> jax.Array:
 def reference(x: jax.Array, shift: jax.Array, scale: jax.Array) -> jax.Array:
   """What the kernel computes, in plain JAX: LN and modulate in float32, cast once at the end."""
   dtype = jnp.result_type(x, shift, scale)
-  x32 = x.astype(jnp.float32)
-  mean = x32.mean(-1, keepdims=True)
-  var = jnp.square(x32 - mean).mean(-1, keepdims=True)
-  xhat = (x32 - mean) * jax.lax.rsqrt(var + EPS)
+  xhat = _standardise(x)
   return (xhat * (1 + scale.astype(jnp.float32)) + shift.astype(jnp.float32)).astype(dtype)
 
 
@@ -80,8 +82,6 @@ def _per_device(x, shift, scale):
   """The kernel once per device under a mesh (XLA cannot partition a Pallas call): the leading
   axis split over the batch axes that divide it, every other axis (D too) whole."""
   batch, _ = kernels.split_axes(x.shape[0]) if x.ndim > 2 else (None, None)  # [P, D]: one frame
-  if jax.sharding.get_abstract_mesh().empty:
-    return _local(x, shift, scale)
   spec = kernels.P(batch)
   return kernels.per_device(_local, in_specs=(spec,) * 3, out_specs=spec)(x, shift, scale)
 
