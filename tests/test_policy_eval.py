@@ -109,6 +109,37 @@ def test_agreement_scores():
     policy_eval.policy_value([np.nan, np.nan])
 
 
+def test_agreement_intervals_resample_episodes_within_policy():
+  """Well separated policies whose estimates follow the truth episode by episode: a narrow
+  interval near 1 that holds the point estimate. Policies whose values lie within noise of each
+  other: a wide one. Estimates paired with the truth per episode: resampling keeps the pairs."""
+  rng = np.random.default_rng(0)
+  means = np.array([0.1, 0.3, 0.5, 0.7, 0.9])
+  true = [m + 0.05 * rng.standard_normal(48) for m in means]
+  estimated = [0.8 * t + 0.01 * rng.standard_normal(48) for t in true]
+  clear = policy_eval.agreement_intervals(true, estimated, samples=500)
+  point = policy_eval.agreement([t.mean() for t in true], [e.mean() for e in estimated])
+  assert 0.99 < clear["pearson"][0] <= point["pearson"] <= clear["pearson"][1] <= 1.0
+  assert clear["spearman"] == [1.0, 1.0] and clear["undefined_pearson"] == 0
+  noisy_true = [0.5 + 0.3 * rng.standard_normal(12) for _ in range(5)]
+  noisy = policy_eval.agreement_intervals(noisy_true, [rng.standard_normal(12) for _ in range(5)],
+                                          samples=500)
+  assert noisy["pearson"][1] - noisy["pearson"][0] > 1.0
+  assert noisy["spearman"][0] < 0 < noisy["spearman"][1]
+  # the same draws for the same seed; NaN returns are left out as in policy_value
+  again = policy_eval.agreement_intervals(true, estimated, samples=500)
+  assert again == clear
+  with_nan = [np.append(e, np.nan) for e in estimated]
+  assert policy_eval.agreement_intervals([np.append(t, 0.5) for t in true], with_nan,
+                                         samples=100)["pearson"][0] > 0.9
+  constant = policy_eval.agreement_intervals([np.ones(4)] * 3, [np.arange(4.0)] * 3, samples=50)
+  assert constant["pearson"] is None and constant["undefined_pearson"] == 50
+  with pytest.raises(ValueError, match="paired"):
+    policy_eval.agreement_intervals([np.ones(4)] * 3, [np.ones(4), np.ones(3), np.ones(4)])
+  with pytest.raises(ValueError, match="P >= 3"):
+    policy_eval.agreement_intervals([np.ones(4)] * 2, [np.ones(4)] * 2)
+
+
 def brightness_policy(frames, key):
   """A pure-JAX policy: the mean brightness of the newest frame, plus noise."""
   mean = jnp.asarray(frames)[:, -1].mean((1, 2, 3))

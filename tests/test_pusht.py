@@ -14,13 +14,15 @@ from PIL import Image
 from conftest import ROOT
 from wmjax import cli
 from wmjax.config import load_config
+from wmjax.data import synthetic
 from wmjax.data.sources import ArrayRecordEpisodes
 from wmjax.eval import rewards
 from wmjax.frames import to_model
 from wmjax.tasks.pusht import dataset as pusht_data
 from wmjax.tasks.pusht import metrics as pusht_metrics
 from wmjax.tasks.pusht import simulator as pusht
-from wmjax.tasks.pusht.evaluate import summarize
+from wmjax.tasks.gridworld import dataset as gridworld_data
+from wmjax.tasks.pusht.evaluate import held_out, initial_states, summarize
 from wmjax.tasks.pusht.rewards import coverage
 
 
@@ -67,7 +69,7 @@ def test_agent_and_block_metrics_read_from_frames():
   got = pusht_metrics.pusht_metrics(pred, np.repeat(truth[:, None], 3, 1), {})
   assert {k: v.shape for k, v in got.items()} == {
       k: (2, 3) for k in ("agent_error_px", "agent_found", "agent_iou", "block_error_px",
-                          "block_iou")}
+                          "block_angle_error_deg", "block_iou")}
   np.testing.assert_allclose(got["agent_error_px"][:, 0], 0.0)
   np.testing.assert_allclose(got["agent_error_px"][:, 1], 3.0, atol=0.6)
   np.testing.assert_allclose(got["agent_error_px"][:, 2], 24.0)
@@ -76,8 +78,83 @@ def test_agent_and_block_metrics_read_from_frames():
   assert (got["agent_iou"][:, 1:] == 0).all()  # moved by its own width / gone
   np.testing.assert_allclose(got["block_iou"][:, 0], 1.0)
   assert (got["block_error_px"][:, :2] < 0.5).all()  # the agent off the block: the T unchanged
+  assert (got["block_angle_error_deg"][:, :2] < 3.0).all()
   masks = pusht_metrics.pusht_masks(pred, np.repeat(truth[:, None], 3, 1), {})
   assert masks.shape == (2, 3, 48, 48) and masks[:, 1].sum() > masks[:, 0].sum()
+
+
+@pytest.mark.unit
+def test_block_pose_reads_the_angle_of_the_t_from_frames():
+  """Any angle, anywhere (the T rotated all the way round: the stem's end is told from the
+  bar's), within a few degrees at 48 px; a T turned by 30 degrees is 30 degrees off, a missing
+  one 180."""
+  states = pusht.random_initial_states(np.random.default_rng(5), 32, max_offset=150,
+                                       max_angle=3.1)
+  frames, info = _render(states)
+  block = np.asarray(pusht.object_masks(to_model(frames))[0])
+  _, angle, found = pusht_metrics.block_pose(block)
+  error = np.degrees(np.angle(np.exp(1j * (angle - info["state"][:, 4]))))
+  assert found.all() and np.abs(error).mean() < 5 and np.abs(error).max() < 15, error
+  turned = states.copy()
+  turned[:, 4] += np.radians(30)
+  turned_frames, _ = _render(turned)
+  blank = np.full_like(frames, 255)
+  got = pusht_metrics.pusht_metrics(np.stack([turned_frames, blank], 1),
+                                    np.stack([frames, frames], 1), {})
+  np.testing.assert_allclose(np.median(got["block_angle_error_deg"][:, 0]), 30, atol=4)
+  np.testing.assert_allclose(got["block_angle_error_deg"][:, 1], 180.0)
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("profile", ["cpu", "h100"])
+def test_pusht_evaluation_and_planning_start_states_are_held_out_from_training(profile):
+  """Policy evaluation and planning draw their start states from streams no split draws from:
+  none equals (to 1e-6) a start state of the config's training split, for several evaluation
+  seeds. The check catches the states the evaluation drew before (the training split's own
+  stream, ``default_rng(0)``): most of them were training start states."""
+  config = load_config(str(ROOT / "configs" / f"pusht.py:{profile}"))
+  params = pusht_data.PushTConfig.from_dict(config.data.pusht)
+  train = pusht_data.PushT.start_states(params, "train")
+  assert train.shape == (params.train_episodes, 5)
+  for purpose, count in (("evaluate", 48), ("plan", 20)):
+    for seed in range(3):
+      states = initial_states(config, count, purpose, seed)
+      assert not synthetic.matching(states, train).any(), (purpose, seed)
+      assert held_out(config, states) is True
+  test_split = pusht_data.PushT.start_states(params, "test")
+  assert not synthetic.matching(test_split, train).any()
+  old = pusht.random_initial_states(np.random.default_rng(params.seed), 48,
+                                    max_offset=params.max_offset, max_angle=params.max_angle)
+  assert synthetic.matching(old, train).sum() >= 40
+  assert held_out(config, old) is False
+
+
+@pytest.mark.unit
+def test_gridworld_evaluation_start_states_are_held_out_from_training():
+  """The gridworld is evaluated on its test split (``data.eval_split``): no test episode starts
+  where a training episode starts (positions on a 13 x 13 grid per square, so a collision is
+  possible and is checked, not assumed)."""
+  config = load_config(str(ROOT / "configs" / "gridworld.py"))
+  assert (config.data.train_split, config.data.eval_split) == ("train", "test")
+  params = gridworld_data.GridworldConfig.from_dict(config.data.gridworld)
+  train = gridworld_data.Gridworld.start_states(params, "train")
+  test = gridworld_data.Gridworld.start_states(params, "test")
+  assert train.shape == (params.train_episodes, params.num_squares, 2)
+  assert test.shape == (params.test_episodes, params.num_squares, 2)
+  assert not synthetic.matching(test, train).any()
+  assert synthetic.matching(train[5:9], train).all()  # the check finds what is there
+
+
+@pytest.mark.unit
+def test_random_streams_are_separate_per_purpose():
+  draws = {purpose: synthetic.stream(0, purpose).uniform(size=4)
+           for purpose in ("train", "test", "evaluate", "plan")}
+  draws["evaluate seed 1"] = synthetic.stream(0, "evaluate", 1).uniform(size=4)
+  values = np.stack(list(draws.values()))
+  assert len(np.unique(values[:, 0])) == len(values)
+  np.testing.assert_array_equal(draws["train"], np.random.default_rng(0).uniform(size=4))
+  with pytest.raises(ValueError, match="purpose must be one of"):
+    synthetic.stream(0, "validation")
 
 
 @pytest.mark.unit
@@ -128,6 +205,14 @@ def test_prepare_command_writes_labelled_episodes(tmp_path):
   _, info = _render(pusht.reset_state((agent_x, agent_y), (x, y), angle)[None])
   assert episode.extras["coverage"][-1] == pytest.approx(info["coverage"][0], abs=0.02)
   assert episode.extras["success"].dtype == bool
+  # the replayed start states are the ones written (TFDS shuffles the episodes; float32 on disk;
+  # the stored state holds the block's body origin, a reset vector its centre of gravity)
+  stored = np.stack([pusht.reset_state(s[:2], s[2:4], s[4]) for s in (
+      source.episode(i).extras["state"][0].astype(np.float64) for i in range(4))])
+  replayed = pusht_data.PushT.start_states(pusht_data.PushTConfig(
+      train_episodes=4, test_episodes=2, episode_length=6, noise_levels=(0, 0.5), batch=3),
+      "train")
+  assert synthetic.matching(stored, replayed, atol=1e-3).all()
 
 
 @pytest.mark.unit
@@ -209,16 +294,27 @@ def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
                    "--videos", "1", "--video_format", "gif", "--out", str(out), "--scan"]) == 0
   result = json.loads((out / "policy_eval.json").read_text())
   assert list(result["policies"]) == ["push", "push@0.5", "stay"]
+  assert result["held_out"] is True
   for values in result["policies"].values():
-    assert set(values) == {"simulator", "coverage", f"goal:{goal}"}
+    assert set(values) == {"simulator", "block", "coverage", f"goal:{goal}"}
     assert 0.0 <= values["simulator"]["mean"] <= 1.0
     assert values["coverage"]["world_model"]["rollouts"] == 2
+    assert len(values["coverage"]["world_model"]["per_episode"]) == 2
+    assert values["simulator"]["mean"] == pytest.approx(np.mean(values["simulator"]["per_episode"]))
+    for kind in ("world_model", "copy_first_frame"):
+      per_step = values["block"][kind]["per_step"]
+      assert {m: len(v) for m, v in per_step.items()} == {
+          "block_error_px": 5, "block_angle_error_deg": 5, "block_iou": 5}
+      assert values["block"][kind]["end"]["block_iou"] == per_step["block_iou"][-1]
     assert values[f"goal:{goal}"]["simulator_reward"]["mean"] <= 0.0  # -MSE
+  intervals = result["rewards"]["coverage"]["agreement_ci95"]
+  assert intervals["samples"] == 2000 and intervals["level"] == 0.95
   pearson = result["rewards"]["coverage"]["agreement"]["pearson"]
   assert pearson is None or np.isnan(pearson) or -1.0 <= pearson <= 1.0
   assert (out / "videos" / "push@0.5.gif").stat().st_size > 0
   report = (out / "policy_eval.md").read_text()
   assert "## Reward: coverage" in report and "| push |" in report
+  assert "held out from the training split: True" in report and "The T at the last step" in report
 
   plan_out = tmp_path / "plan"
   assert cli.main(["plan", "--workdir", workdir, "--episodes", "2", "--steps", "6",
@@ -227,6 +323,7 @@ def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
   assert set(plan["candidates"]) == {"1", "3"}
   assert plan["candidates"]["3"]["world_model"]["replans"] == 2  # 6 steps, 4 executed per plan
   assert set(plan["candidates"]["1"]) == {"world_model", "simulator"}
+  assert plan["held_out"] is True
   assert "| 3 |" in capsys.readouterr().out
 
   summary = summarize(result, plan)
@@ -237,12 +334,20 @@ def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
   assert summary["planning"]["3"]["gain_mean"] == pytest.approx(gains.mean())
   assert summary["planning"]["3"]["mean"] == pytest.approx(three["final_coverage"]["mean"])
   assert summary["planning"]["1"]["gain_mean"] == 0.0
+  assert summary["held_out"] is True
+  assert summary["block_iou_push_end"] == result["policies"]["push"]["block"]["world_model"][
+      "end"]["block_iou"]
   for k in ("1", "3"):  # exploitability: K = 1's single candidate is imagined too
     row = plan["candidates"][k]["world_model"]
-    assert row["imagined_value"]["rollouts"] == row["simulator_value"]["rollouts"] == 2 * 2
+    # per episode, averaged over its 2 replannings: the standard error is clustered by episode
+    assert row["imagined_value"]["rollouts"] == row["simulator_value"]["rollouts"] == 2
     assert summary["planning"][k]["exploitability_gap"] == pytest.approx(
         row["imagined_value"]["mean"] - row["simulator_value"]["mean"])
     assert "exploitability_gap" not in summary["planning_lookahead"][k]
+  assert summary["planning"]["1"]["selection_effect"] == 0.0
+  assert summary["planning"]["3"]["selection_effect"] == pytest.approx(
+      summary["planning"]["3"]["exploitability_gap"] - summary["planning"]["1"]["exploitability_gap"])
+  assert not summarize(result, {**plan, "held_out": None})["held_out"]
   json.dumps(summary, allow_nan=False)  # NaN correlations are None: strict JSON
   with pytest.raises(ValueError, match="over K = 1"):
     summarize(result, {**plan, "candidates": {"3": plan["candidates"]["3"]}})
@@ -265,6 +370,9 @@ def test_experiment_script_runs_its_stages_resumably(experiment):
   assert set(summary["stage_minutes"]) == {"data", "classifier", "train", "policy", "plan"}
   assert set(summary["planning"]) == set(summary["planning_lookahead"]) == {"1", "3"}
   assert set(summary["policies"]) == {"push", "push@0.1", "push@0.2", "push@0.5", "stay"}
+  assert summary["held_out"] is True and 0.0 <= summary["block_iou_push_end"] <= 1.0
+  for name in ("pearson_ci95", "spearman_ci95"):  # [lo, hi], or None if never defined
+    assert summary[name] is None or -1.0 <= summary[name][0] <= summary[name][1] <= 1.0
   plan = json.loads((root / "plan" / "plan.json").read_text())  # the K runs merged
   for k in ("1", "3"):
     assert plan["candidates"][k] == json.loads(

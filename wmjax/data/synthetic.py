@@ -1,11 +1,17 @@
 """A TFDS RLDS builder for datasets wmjax generates itself (gridworld, Push-T), in ArrayRecord.
 
 A subclass names its parameters (a frozen dataclass with ``name``, ``seed``, ``image_size``,
-``train_episodes`` and ``test_episodes``), its action dimension, the per-step observation extras
-and the episode generator; this class writes the standard RLDS layout
+``train_episodes`` and ``test_episodes``), its action dimension, the per-step observation extras,
+the episode generator and how to replay a split's start states; this class writes the standard
+RLDS layout
 (``steps/observation/image`` as PNG, ``steps/action``, ``language_instruction``, ``reward``,
 ``discount``, ``is_first`` / ``is_last`` / ``is_terminal``) with one builder config per parameter
 set, so every variant lives in its own directory and is written once.
+
+Random streams (:func:`stream`): every purpose draws from its own stream of the parameters'
+``seed``, so what a model is evaluated or planned on is never what it was trained on by
+construction: ``train`` and ``test`` (the dataset's splits) and ``evaluate`` and ``plan`` (start
+states a task's evaluation draws; :func:`matching` checks them against the training split's).
 """
 
 from __future__ import annotations
@@ -34,10 +40,46 @@ class GeneratedEpisode:
   observations: dict[str, np.ndarray]
 
 
+SPLITS = ("train", "test")
+# the splits' streams are those the datasets were always written with (``seed + offset``)
+_SPLIT_SEED_OFFSETS = {"train": 0, "test": 1_000_003}
+# other purposes: children of the seed's SeedSequence, apart from the splits' streams and each other
+_PURPOSES = ("evaluate", "plan")
+
+
+def stream(seed: int, purpose: str, *index: int) -> np.random.Generator:
+  """The random stream of ``purpose`` (``train``, ``test``, ``evaluate`` or ``plan``) for the
+  dataset seed ``seed``; ``index`` picks one of several independent draws of a purpose (e.g. an
+  evaluation's own seed). Streams of different purposes never coincide: ``train`` / ``test`` are
+  ``default_rng(seed)`` / ``default_rng(seed + 1_000_003)``, the others children
+  ``SeedSequence(seed, spawn_key=(k, *index))``."""
+  if purpose in _SPLIT_SEED_OFFSETS:
+    if index:
+      raise ValueError(f"the {purpose!r} split has one stream, got index {index}")
+    return np.random.default_rng(seed + _SPLIT_SEED_OFFSETS[purpose])
+  if purpose not in _PURPOSES:
+    raise ValueError(f"purpose must be one of {SPLITS + _PURPOSES}, got {purpose!r}")
+  key = (_PURPOSES.index(purpose), *index)
+  return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=key))
+
+
+def matching(states, reference, atol: float = 1e-6) -> np.ndarray:
+  """Whether each of ``states [N, ...]`` equals (every number within ``atol``) one of
+  ``reference [M, ...]`` -> ``[N]`` bool."""
+  states = np.asarray(states, np.float64)
+  reference = np.asarray(reference, np.float64)
+  if states.shape[1:] != reference.shape[1:]:
+    raise ValueError(f"states {states.shape} and reference {reference.shape} differ in shape")
+  found = np.zeros(len(states), bool)
+  for first in range(0, len(reference), 1024):  # [N, 1024, ...] at a time
+    block = reference[first:first + 1024]
+    close = np.abs(states[:, None] - block[None]) <= atol
+    found |= close.reshape(close.shape[:2] + (-1,)).all(-1).any(1)
+  return found
+
+
 class SyntheticBuilder(tfds.core.GeneratorBasedBuilder):
   """Base builder; subclasses set ``VERSION`` / ``RELEASE_NOTES`` and implement the hooks."""
-
-  SPLIT_SEED_OFFSETS = {"train": 0, "test": 1_000_003}
 
   def __init__(self, *, params, **kwargs):
     self.params = params
@@ -54,6 +96,18 @@ class SyntheticBuilder(tfds.core.GeneratorBasedBuilder):
   def episodes(self, count: int, rng: np.random.Generator) -> Iterator[GeneratedEpisode]:
     """``count`` episodes drawn with ``rng``."""
     raise NotImplementedError(f"{type(self).__name__} must define episodes()")
+
+  @classmethod
+  def start_states(cls, params, split: str) -> np.ndarray:
+    """The start state of every episode of ``split`` (``[N, ...]``, float64), replayed from the
+    split's stream without simulating or writing anything."""
+    raise NotImplementedError(f"{cls.__name__} must define start_states()")
+
+  @staticmethod
+  def episode_count(params, split: str) -> int:
+    if split not in SPLITS:
+      raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    return params.train_episodes if split == "train" else params.test_episodes
 
   # ---------------------------------------------------------------- TFDS
   def _info(self) -> tfds.core.DatasetInfo:
@@ -78,11 +132,11 @@ class SyntheticBuilder(tfds.core.GeneratorBasedBuilder):
         metadata=tfds.core.MetadataDict(dataclasses.asdict(self.params)))
 
   def _split_generators(self, dl_manager):
-    return {split: self._generate_examples(split) for split in self.SPLIT_SEED_OFFSETS}
+    return {split: self._generate_examples(split) for split in SPLITS}
 
   def _generate_examples(self, split: str):
-    rng = np.random.default_rng(self.params.seed + self.SPLIT_SEED_OFFSETS[split])
-    count = self.params.train_episodes if split == "train" else self.params.test_episodes
+    rng = stream(self.params.seed, split)
+    count = self.episode_count(self.params, split)
     for index, episode in enumerate(self.episodes(count, rng)):
       last = len(episode.images) - 1
       steps = [{

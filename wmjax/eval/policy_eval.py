@@ -13,7 +13,8 @@ so for the same keys they produce the same episodes. A reward function ``(frames
 instruction) -> [B]`` (see :mod:`wmjax.eval.rewards`) scores each episode; :func:`policy_value`
 gives the mean and standard error of groups of rollouts, and :func:`agreement` compares the values
 a world model estimates with ground-truth values: Pearson, Spearman, Kendall, pairwise rank
-agreement, whether the ranking is preserved, MMRV and the mean value gap.
+agreement, whether the ranking is preserved, MMRV and the mean value gap;
+:func:`agreement_intervals` gives bootstrap intervals of the correlations over episodes.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import itertools
+import warnings
 from typing import Any, Callable
 
 import jax
@@ -250,6 +252,54 @@ def agreement(true_values, estimated_values) -> dict[str, float]:
       "mmrv": float(violation.mean()),
       "value_gap": float(np.abs(est - true).mean()),
   }
+
+
+def agreement_intervals(true_returns, estimated_returns, *, samples: int = 2000, seed: int = 0,
+                        level: float = 0.95) -> dict[str, Any]:
+  """Bootstrap intervals of :func:`agreement`'s Pearson and Spearman correlations over episodes.
+
+  ``true_returns`` / ``estimated_returns``: per policy (``P >= 3``) the returns of its episodes,
+  ``[N_p]`` each, paired (episode ``i`` of a policy started from the same state on both sides).
+  Each of ``samples`` draws resamples every policy's episodes with replacement (the same ones on
+  both sides), takes the policies' mean returns (NaN returns left out, as in
+  :func:`policy_value`) and correlates them. Returns ``pearson`` / ``spearman`` as the
+  ``level`` percentile interval ``[lo, hi]`` over the draws where the correlation is defined
+  (None if none is), ``undefined_pearson`` / ``undefined_spearman`` (draws where one side's
+  means were all equal), ``samples`` and ``level``."""
+  if len(true_returns) != len(estimated_returns) or len(true_returns) < 3:
+    raise ValueError(f"need returns of the same P >= 3 policies on both sides, got "
+                     f"{len(true_returns)} and {len(estimated_returns)}")
+  rng = np.random.default_rng(seed)
+  means = np.empty((2, samples, len(true_returns)))
+  for p, (true, est) in enumerate(zip(true_returns, estimated_returns)):
+    true, est = np.asarray(true, np.float64), np.asarray(est, np.float64)
+    if true.shape != est.shape or true.ndim != 1 or not len(true):
+      raise ValueError(f"policy {p}: need paired [N] returns on both sides, got {true.shape} "
+                       f"and {est.shape}")
+    draws = rng.integers(0, len(true), (samples, len(true)))
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+      warnings.simplefilter("ignore", RuntimeWarning)  # a draw of only NaN returns
+      means[:, :, p] = np.nanmean(true[draws], 1), np.nanmean(est[draws], 1)
+  ranks = scipy_stats.rankdata(means, axis=-1)
+  result = {"samples": samples, "level": level}
+  for name, (x, y) in (("pearson", means), ("spearman", ranks)):
+    r = _row_correlation(x, y)
+    defined = r[np.isfinite(r)]
+    tail = 100 * (1 - level) / 2
+    result[name] = ([float(np.percentile(defined, tail)), float(np.percentile(defined, 100 - tail))]
+                    if len(defined) else None)
+    result[f"undefined_{name}"] = int(samples - len(defined))
+  return result
+
+
+def _row_correlation(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+  """Pearson correlation of each row of ``x`` and ``y`` ``[S, P]`` -> ``[S]`` (NaN where a row is
+  constant or holds a NaN)."""
+  x = x - x.mean(-1, keepdims=True)
+  y = y - y.mean(-1, keepdims=True)
+  scale = np.sqrt((x * x).sum(-1) * (y * y).sum(-1))
+  with np.errstate(invalid="ignore", divide="ignore"):
+    return np.where(scale > 0, (x * y).sum(-1) / scale, np.nan)
 
 
 def agreement_table(names: list[str], true: list[PolicyValue], estimated: list[PolicyValue],

@@ -121,6 +121,13 @@ class Gridworld(synthetic.SyntheticBuilder):
           instruction="move the squares", rewards=np.zeros(g.episode_length, np.float32),
           observations={"square_positions": centres})
 
+  @classmethod
+  def start_states(cls, params, split):
+    """Square centres ``[N, n, 2]`` of every episode's first frame in ``split``."""
+    rng = synthetic.stream(params.seed, split)
+    count = cls.episode_count(params, split)
+    return np.stack([simulate(params, rng)[0][0] for _ in range(count)]).astype(np.float64)
+
 
 def prepare(data_dir: str, config: GridworldConfig = GridworldConfig()) -> str:
   """Write the dataset as ArrayRecord under ``data_dir`` (once); returns the builder directory."""

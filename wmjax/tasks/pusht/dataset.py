@@ -68,24 +68,31 @@ class PushTConfig:
             f"_a{self.max_angle:g}_seed{self.seed}")
 
 
-def collect(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
-  """Simulate ``num_episodes`` episodes, ``config.batch`` at a time, cycling through the noise
-  levels; yields :class:`wmjax.data.synthetic.GeneratedEpisode`."""
+def _draws(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
+  """What ``rng`` decides of ``num_episodes`` episodes, ``config.batch`` at a time: per batch the
+  noise levels ``[b]`` (cycling through ``config.noise_levels``), the start states ``[b, 5]`` and
+  the simulation's key seed."""
   levels = config.noise_levels
   for first in range(0, num_episodes, config.batch):
     count = min(config.batch, num_episodes - first)
     noise = np.array([levels[(first + i) % len(levels)] for i in range(count)], np.float32)
     states = simulator.random_initial_states(rng, count, max_offset=config.max_offset,
-                                         max_angle=config.max_angle)
-    expert = simulator.PushPolicy(chunk=config.chunk)
+                                             max_angle=config.max_angle)
+    yield noise, states, int(rng.integers(2**31))
 
-    def policy(frames, key):  # the expert with each episode's own noise level
+
+def collect(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
+  """Simulate ``num_episodes`` episodes, ``config.batch`` at a time, cycling through the noise
+  levels; yields :class:`wmjax.data.synthetic.GeneratedEpisode`."""
+  expert = simulator.PushPolicy(chunk=config.chunk)
+  for noise, states, seed in _draws(config, num_episodes, rng):
+
+    def policy(frames, key, noise=noise):  # the expert with each episode's own noise level
       return expert.act(frames, key, noise)
 
     run = simulator.simulate_policy(policy, states, config.episode_length - 1,
-                                image_size=config.image_size,
-                                key=jax.random.key(int(rng.integers(2**31))))
-    for i in range(count):
+                                    image_size=config.image_size, key=jax.random.key(seed))
+    for i in range(len(states)):
       actions = np.concatenate([run["actions"][i], run["state"][i, -1:, :2]])  # last: stay
       coverage = run["coverage"][i]
       yield synthetic.GeneratedEpisode(
@@ -113,6 +120,12 @@ class PushT(synthetic.SyntheticBuilder):
 
   def episodes(self, count, rng):
     return collect(self.params, count, rng)
+
+  @classmethod
+  def start_states(cls, params, split):
+    """``reset_to_state`` vectors ``[N, 5]`` every episode of ``split`` started from."""
+    draws = _draws(params, cls.episode_count(params, split), synthetic.stream(params.seed, split))
+    return np.concatenate([states for _, states, _ in draws])
 
 
 def prepare(data_dir: str, config: PushTConfig = PushTConfig()) -> str:

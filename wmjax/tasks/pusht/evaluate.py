@@ -10,7 +10,10 @@
 
 Both start each episode from :func:`.simulator.random_initial_states` (the training data's
 distribution) with ``context - 1`` still steps, so the world model gets the same first ``context``
-frames and the (known) actions between them as the simulator.
+frames and the (known) actions between them as the simulator. The start states are held out by
+construction: policy evaluation and planning draw them from their own random streams
+(:func:`wmjax.data.synthetic.stream`), and both check them against every start state of the
+training split (:func:`held_out`) and report the result as ``held_out``.
 """
 
 from __future__ import annotations
@@ -22,20 +25,41 @@ from typing import Any
 import jax
 import numpy as np
 
+from wmjax.data import synthetic
 from wmjax.env import RewardFn, WorldModelEnv
 from wmjax.eval import planning, policy_eval
 from wmjax.eval.video import (VIDEO_FORMATS, comparison, frame_grid, stack_rows, write_png,
                               write_video)
+from wmjax.frames import to_uint8
 from wmjax.tasks.pusht import simulator as pusht
-from wmjax.tasks.pusht.dataset import INSTRUCTION, PushTConfig
+from wmjax.tasks.pusht.dataset import INSTRUCTION, PushT, PushTConfig
+from wmjax.tasks.pusht.metrics import pusht_metrics
+
+# the T's frame metrics followed through closed-loop rollouts (``wmjax.tasks.pusht.metrics``)
+BLOCK_METRICS = ("block_error_px", "block_angle_error_deg", "block_iou")
 
 
+def _params(config) -> PushTConfig:
+  return PushTConfig.from_dict(config.data.get("pusht") or {})  # defaults where not Push-T
 
-def initial_states(config, episodes: int, seed: int) -> np.ndarray:
-  """``[episodes, 5]`` simulator states drawn like the config's training data."""
-  params = PushTConfig.from_dict(config.data.get("pusht") or {})  # defaults where not Push-T
-  return pusht.random_initial_states(np.random.default_rng(seed), episodes,
-                                     max_offset=params.max_offset, max_angle=params.max_angle)
+
+def initial_states(config, episodes: int, purpose: str, seed: int = 0) -> np.ndarray:
+  """``[episodes, 5]`` simulator states drawn like the config's training data, from the stream
+  of ``purpose`` (``evaluate`` or ``plan``; ``seed`` picks one of its draws), which no split of
+  the dataset draws from."""
+  params = _params(config)
+  rng = synthetic.stream(params.seed, purpose, seed)
+  return pusht.random_initial_states(rng, episodes, max_offset=params.max_offset,
+                                     max_angle=params.max_angle)
+
+
+def held_out(config, states) -> bool | None:
+  """Whether none of ``states [N, 5]`` equals (to 1e-6) a start state of the config's training
+  split, replayed from its parameters (:meth:`.dataset.PushT.start_states`); None where the
+  config's dataset is not the generated Push-T one."""
+  if config.data.dataset != "pusht":
+    return None
+  return not synthetic.matching(states, PushT.start_states(_params(config), "train")).any()
 
 
 def policy_chunk(config) -> int:
@@ -93,8 +117,8 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
   config = model.config
   c, h = config.rollout.context, config.rollout.horizon
   size = _image_size(model)
-  states = initial_states(config, episodes, seed)
-  names, values, videos_written = list(policies), {}, {}
+  states = initial_states(config, episodes, "evaluate", seed)
+  names, values, block, videos_written = list(policies), {}, {}, {}
   for index, name in enumerate(names):
     policy = policies[name]
     policy_key = jax.random.fold_in(jax.random.key(seed), index)
@@ -119,6 +143,7 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
               truth["frames"], reward_fn, INSTRUCTION, start=c - 1)),
           "world_model": policy_eval.policy_value(policy_eval.episode_returns(
               imagined, reward_fn, INSTRUCTION, start=c - 1))}
+    block[name] = rollout_block_metrics(imagined, truth["frames"], c)
     if out and videos:
       shown = range(min(videos, episodes))
       rows = [comparison(truth["frames"][i], imagined[i]) for i in shown]
@@ -130,20 +155,23 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
           [video[every] for i in shown for video in (truth["frames"][i], imagined[i])]))
 
   simulator = [values[n]["simulator"] for n in names]
-  result = {"policies": {n: {"simulator": values[n]["simulator"].to_dict()} for n in names},
+  result = {"policies": {n: {"simulator": _value_dict(values[n]["simulator"]),
+                             "block": block[n]} for n in names},
             "rewards": {}, "episodes": episodes, "steps": steps, "seed": seed,
-            "videos": videos_written}
+            "held_out": held_out(config, states), "videos": videos_written}
   for reward in rewards:
     model_values = [values[n][reward]["world_model"] for n in names]
     same_reward = [values[n][reward]["simulator_reward"] for n in names]
     for n in names:
-      result["policies"][n][reward] = {k: v.to_dict() for k, v in values[n][reward].items()}
+      result["policies"][n][reward] = {k: _value_dict(v) for k, v in values[n][reward].items()}
     agreement = policy_eval.agreement([v.mean for v in simulator],
                                       [v.mean for v in model_values])
     agreement_same = policy_eval.agreement([v.mean for v in same_reward],
                                            [v.mean for v in model_values])
     result["rewards"][reward] = {
         "agreement": agreement, "agreement_same_reward": agreement_same,
+        "agreement_ci95": policy_eval.agreement_intervals(
+            [v.returns for v in simulator], [v.returns for v in model_values], seed=seed),
         "table": policy_eval.agreement_table(names, simulator, model_values, agreement),
         "table_same_reward": policy_eval.agreement_table(names, same_reward, model_values,
                                                          agreement_same)}
@@ -152,14 +180,54 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
   return result
 
 
+def _value_dict(value: policy_eval.PolicyValue) -> dict:
+  """A policy value with its per-episode returns (the episodes are the same start states for
+  every policy, so values can be paired and resampled later)."""
+  return {**value.to_dict(), "per_episode": [float(x) for x in value.returns]}
+
+
+def rollout_block_metrics(imagined, truth, context: int) -> dict[str, dict]:
+  """The T in closed-loop rollouts against the simulator's ``truth [B, T, S, S, 3]``, per
+  generated step, for the world model's frames ``imagined`` (the same shape, the first
+  ``context`` given) and for copying the last given frame (a model that never moves the T):
+  per kind, the mean over episodes of each of :data:`BLOCK_METRICS` per step (``per_step``:
+  ``[T - context]`` lists) and at the last step (``end``)."""
+  truth = to_uint8(truth)
+  copy = np.repeat(truth[:, context - 1:context], truth.shape[1] - context, axis=1)
+  rows = {}
+  for kind, frames in (("world_model", to_uint8(imagined)[:, context:]),
+                       ("copy_first_frame", copy)):
+    scores = pusht_metrics(frames, truth[:, context:], {})
+    per_step = {m: [float(x) for x in scores[m].mean(0)] for m in BLOCK_METRICS}
+    rows[kind] = {"per_step": per_step, "end": {m: v[-1] for m, v in per_step.items()}}
+  return rows
+
+
 def policy_report(result: dict) -> str:
-  """Markdown: per reward, the agreement tables of :func:`evaluate_policies`."""
-  parts = []
+  """Markdown: whether the start states were held out; per reward, the agreement tables of
+  :func:`evaluate_policies` with bootstrap intervals; the T at the end of the rollouts."""
+  parts = [f"Start states held out from the training split: {result['held_out']}", ""]
   for reward, tables in result["rewards"].items():
+    ci = tables["agreement_ci95"]
     parts += [f"## Reward: {reward}", "", "World model against the simulator's true coverage:", "",
-              tables["table"], "", f"World model against {reward} on the simulator's frames:", "",
+              tables["table"], "",
+              "95 % bootstrap intervals over episodes (resampled within policy, "
+              f"{ci['samples']} draws): " + ", ".join(
+                  f"{name} {_interval(ci[name])}" for name in ("pearson", "spearman")),
+              "", f"World model against {reward} on the simulator's frames:", "",
               tables["table_same_reward"], ""]
-  return "\n".join(parts)
+  parts += ["## The T at the last step (mean over episodes)", "",
+            "| policy | " + " | ".join(f"{m} (model / copy first frame)" for m in BLOCK_METRICS)
+            + " |", "|---" * (len(BLOCK_METRICS) + 1) + "|"]
+  for name, values in result["policies"].items():
+    model, copy = values["block"]["world_model"]["end"], values["block"]["copy_first_frame"]["end"]
+    parts.append(f"| {name} | " + " | ".join(f"{model[m]:.2f} / {copy[m]:.2f}"
+                                            for m in BLOCK_METRICS) + " |")
+  return "\n".join(parts) + "\n"
+
+
+def _interval(bounds) -> str:
+  return "undefined" if bounds is None else f"[{bounds[0]:.3f}, {bounds[1]:.3f}]"
 
 
 class SimulatorLookahead(planning.Planner):
@@ -201,14 +269,19 @@ def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
   Exploitability: the world-model planner also imagines the single candidate of ``K = 1``, and
   for every ``K`` the row keeps ``imagined_value`` (``value_fn`` on the chosen plan's last
   imagined frame) beside ``simulator_value`` (``value_fn`` on the simulator's frame after that
-  plan ran), over every replanning of every episode; ``exploitability_gap`` is their mean
-  paired difference. A planner that picks the candidates whose imagined outcome the model gets
-  most wrong opens this gap as ``K`` grows."""
+  plan ran), averaged over the replannings of each episode and then over episodes (standard
+  errors clustered by episode: the replannings of one episode are not independent);
+  ``exploitability_gap`` is their paired difference, with ``per_episode`` values so that gaps of
+  two ``K`` can be paired (:func:`summarize`). A planner that picks the candidates whose imagined
+  outcome the model gets most wrong opens this gap as ``K`` grows.
+
+  The start states come from the ``plan`` stream (:func:`initial_states`); ``held_out`` says
+  whether none of them is a training start state."""
   config = model.config
   c, h = config.rollout.context, config.rollout.horizon
   execute = execute or policy_chunk(config)
   size = _image_size(model)
-  states = initial_states(config, episodes, seed)
+  states = initial_states(config, episodes, "plan", seed)
   rows = {}
   planners = ["world_model"] + (["simulator"] if lookahead else [])
   for k in candidates:
@@ -239,7 +312,8 @@ def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
       if kind == "world_model":
         rows[k][kind].update(_exploitability(run, value_fn, c, execute, steps))
   result = {"candidates": rows, "episodes": episodes, "steps": steps, "seed": seed,
-            "execute": execute, "table": planning_table(rows)}
+            "execute": execute, "held_out": held_out(config, states),
+            "table": planning_table(rows)}
   if out:
     _write(out, "plan", result, result["table"] + "\n")
   return result
@@ -248,17 +322,17 @@ def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
 def _exploitability(run: dict, value_fn: RewardFn, context: int, execute: int,
                     steps: int) -> dict[str, Any]:
   """The chosen plans' imagined values beside ``value_fn`` on the simulator's frame after each
-  plan ran (see :func:`plan_in_simulator`)."""
+  plan ran, per episode averaged over its replannings (see :func:`plan_in_simulator`)."""
   imagined, real = [], []
   for i, plan in enumerate(run["plans"]):
     after = context - 1 + min((i + 1) * execute, steps)  # the frame the plan's last action made
     b = len(plan.index)
     imagined.append(plan.scores[np.arange(b), plan.index])
     real.append(np.asarray(value_fn(run["frames"][:, after:after + 1], INSTRUCTION)))
-  imagined, real = np.concatenate(imagined), np.concatenate(real)
-  return {"imagined_value": policy_eval.policy_value(imagined).to_dict(),
-          "simulator_value": policy_eval.policy_value(real).to_dict(),
-          "exploitability_gap": policy_eval.policy_value(imagined - real).to_dict()}
+  imagined, real = np.mean(imagined, axis=0), np.mean(real, axis=0)  # [episodes]
+  return {"imagined_value": _value_dict(policy_eval.policy_value(imagined)),
+          "simulator_value": _value_dict(policy_eval.policy_value(real)),
+          "exploitability_gap": _value_dict(policy_eval.policy_value(imagined - real))}
 
 
 def planning_table(rows: dict[int, dict]) -> str:
@@ -277,18 +351,26 @@ def summarize(policy_result: dict, plan_result: dict, reward: str = "coverage") 
   """The headline figures of a policy evaluation (:func:`evaluate_policies`) and a planning run
   (:func:`plan_in_simulator`, or several merged, with ``K = 1`` among them).
 
-  ``pearson`` / ``spearman`` / ``kendall`` and ``ranking_matches``: the world model's values
-  (``reward`` on the imagined frames) against the simulator's true final coverage over the
-  policies (NaN correlations become None). ``planning`` (and ``planning_lookahead`` when the
-  simulator planned too), keyed by K as a string: final coverage ``mean`` / ``stderr`` over the
-  episodes and the paired ``gain_mean`` / ``gain_stderr`` over K = 1 from the same initial states,
-  with the episodes it made ``better`` and ``worse``, and for the world model the chosen plans'
-  ``imagined_value``, ``simulator_value`` and ``exploitability_gap`` (with ``*_stderr``) where
-  :func:`plan_in_simulator` measured them."""
+  ``held_out``: True only where both checked their start states against the training split's
+  and found none of them there. ``pearson`` / ``spearman`` / ``kendall`` and
+  ``ranking_matches``: the world model's values (``reward`` on the imagined frames) against the
+  simulator's true final coverage over the policies (NaN correlations become None), with
+  ``pearson_ci95`` / ``spearman_ci95`` (bootstrap over episodes, resampled within policy);
+  ``policies``: each policy's values with their standard errors and the T at the last step
+  (world model and copy-first-frame); ``block_iou_push_end`` (and ``..._copy_first_frame``): the
+  T's IoU at the last step of the ``push`` rollouts, where that policy was evaluated.
+  ``planning`` (and ``planning_lookahead`` when the simulator planned too), keyed by K as a
+  string: final coverage ``mean`` / ``stderr`` over the episodes and the paired ``gain_mean`` /
+  ``gain_stderr`` over K = 1 from the same initial states, with the episodes it made ``better``
+  and ``worse``; for the world model the chosen plans' ``imagined_value``, ``simulator_value``
+  and ``exploitability_gap`` (standard errors clustered by episode) and ``selection_effect``: the
+  gap minus K = 1's in the same episode (K = 1's gap is the model's own bias, which choosing
+  among candidates did not cause)."""
   if reward not in policy_result["rewards"]:
     raise ValueError(f"reward {reward!r} was not evaluated; the policy evaluation has "
                      f"{sorted(policy_result['rewards'])}")
   agreement = policy_result["rewards"][reward]["agreement"]
+  intervals = policy_result["rewards"][reward]["agreement_ci95"]
   rows = {str(k): row for k, row in plan_result["candidates"].items()}
   if "1" not in rows:
     raise ValueError(f"planning gains are measured over K = 1, which was not run (K in "
@@ -297,33 +379,51 @@ def summarize(policy_result: dict, plan_result: dict, reward: str = "coverage") 
   def finite(x):
     return None if x is None or not np.isfinite(x) else float(x)
 
+  def paired(values, base):
+    values, base = np.asarray(values), np.asarray(base)
+    if values.shape != base.shape:
+      raise ValueError(f"{values.size} episodes against K = 1's {base.size}: the gains pair "
+                       f"episodes from the same initial states")
+    return policy_eval.policy_value(values - base)
+
   def gains(kind):
-    base = np.asarray(rows["1"][kind]["per_episode"])
+    base = rows["1"][kind]["per_episode"]
     table = {}
     for k in sorted(rows, key=int):
       final = np.asarray(rows[k][kind]["per_episode"])
-      if final.shape != base.shape:
-        raise ValueError(f"K = {k} ran {final.size} episodes and K = 1 {base.size}: the gains "
-                         f"pair episodes from the same initial states")
-      value, gain = policy_eval.policy_value(final), policy_eval.policy_value(final - base)
+      value, gain = policy_eval.policy_value(final), paired(final, base)
       table[k] = {"mean": value.mean, "stderr": value.stderr, "gain_mean": gain.mean,
-                  "gain_stderr": gain.stderr, "better": int((final > base).sum()),
-                  "worse": int((final < base).sum())}
+                  "gain_stderr": gain.stderr, "better": int((final > np.asarray(base)).sum()),
+                  "worse": int((final < np.asarray(base)).sum())}
       for name in ("imagined_value", "simulator_value", "exploitability_gap"):
         if name in rows[k][kind]:
           table[k][name] = rows[k][kind][name]["mean"]
           table[k][f"{name}_stderr"] = rows[k][kind][name]["stderr"]
+      if "exploitability_gap" in rows[k][kind]:
+        effect = paired(rows[k][kind]["exploitability_gap"]["per_episode"],
+                        rows["1"][kind]["exploitability_gap"]["per_episode"])
+        table[k].update(selection_effect=effect.mean, selection_effect_stderr=effect.stderr)
     return table
 
+  policies = {}
+  for name, values in policy_result["policies"].items():
+    policies[name] = {"simulator": values["simulator"]["mean"],
+                      "simulator_stderr": values["simulator"]["stderr"],
+                      "world_model": values[reward]["world_model"]["mean"],
+                      "world_model_stderr": values[reward]["world_model"]["stderr"],
+                      "block_end": {kind: values["block"][kind]["end"]
+                                    for kind in ("world_model", "copy_first_frame")}}
   summary = {
+      "held_out": policy_result.get("held_out") is True and plan_result.get("held_out") is True,
       "reward": reward, "pearson": finite(agreement["pearson"]),
-      "spearman": finite(agreement["spearman"]), "kendall": finite(agreement["kendall"]),
-      "ranking_matches": agreement["ranking_preserved"] == 1.0,
-      "policies": {name: {"simulator": values["simulator"]["mean"],
-                          "world_model": values[reward]["world_model"]["mean"]}
-                   for name, values in policy_result["policies"].items()},
+      "pearson_ci95": intervals["pearson"], "spearman": finite(agreement["spearman"]),
+      "spearman_ci95": intervals["spearman"], "kendall": finite(agreement["kendall"]),
+      "ranking_matches": agreement["ranking_preserved"] == 1.0, "policies": policies,
       "episodes": {"policy_eval": policy_result["episodes"], "plan": plan_result["episodes"]},
       "planning": gains("world_model")}
+  if "push" in policies:
+    for kind, suffix in (("world_model", ""), ("copy_first_frame", "_copy_first_frame")):
+      summary[f"block_iou_push_end{suffix}"] = policies["push"]["block_end"][kind]["block_iou"]
   if all("simulator" in row for row in rows.values()):
     summary["planning_lookahead"] = gains("simulator")
   return summary

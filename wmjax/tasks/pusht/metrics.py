@@ -10,8 +10,11 @@ and the true frame:
 * ``agent_found``: whether the prediction shows an agent at all; ``agent_iou``: IoU of the
   agent's predicted and true pixels (a centroid can sit right in the middle of a smear that
   covers every place the agent might be; the IoU cannot);
-* ``block_error_px``: the same for the T's centroid; ``block_iou``: IoU of the T's pixels (its
-  pose: position and angle).
+* ``block_error_px``: the same for the T's centroid; ``block_angle_error_deg``: the difference
+  of the T's angles (:func:`block_pose`: its mask's axis of largest spread is the stem's, the
+  third moment along it tells the stem's end from the bar's), 180 where the prediction shows no
+  T; ``block_iou``: IoU of the T's pixels (position, angle and shape: a T that bends or smears
+  loses IoU even where its centroid and angle are right).
 
 :data:`FRAME_METRICS` adds them to ``wmjax evaluate`` and training's evaluation for Push-T.
 """
@@ -40,6 +43,37 @@ def _centroid(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
   return centre, count > 0
 
 
+def block_pose(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """The T's pose from its pixels ``mask [..., H, W]``: centroid ``[..., 2]`` (row, column in
+  pixels), angle ``[...]`` (radians, the simulator's ``block_angle``: the stem points along
+  ``(-sin a, cos a)`` in ``(x, y)``) and found ``[...]``.
+
+  The stem's axis is the mask's axis of largest spread (the T's variance along its stem is 1.7
+  times that along its bar), and the stem's end is where the mask reaches farthest from its
+  centroid: the third moment along the axis is positive towards it."""
+  h, w = mask.shape[-2:]
+  m = mask.astype(np.float64)
+  count = m.sum((-2, -1))
+  n = np.maximum(count, 1)
+  rows, cols = np.arange(h) + 0.5, np.arange(w) + 0.5
+  cy = (m * rows[:, None]).sum((-2, -1)) / n
+  cx = (m * cols).sum((-2, -1)) / n
+  dy = rows[:, None] - cy[..., None, None]  # [..., H, 1]
+  dx = cols - cx[..., None, None]  # [..., 1, W]
+  sxx, syy, sxy = ((m * d).sum((-2, -1)) / n for d in (dx * dx, dy * dy, dx * dy))
+  axis = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # from +x towards +y
+  vx, vy = np.cos(axis), np.sin(axis)
+  skew = (m * (dx * vx[..., None, None] + dy * vy[..., None, None]) ** 3).sum((-2, -1))
+  sign = np.where(skew < 0, -1.0, 1.0)
+  angle = np.arctan2(-sign * vx, sign * vy)
+  return np.stack([cy, cx], -1), angle, count > 0
+
+
+def _angle_difference_deg(a, b) -> np.ndarray:
+  """``|a - b|`` of angles in radians, wrapped to [0, 180] degrees."""
+  return np.abs(np.degrees(np.angle(np.exp(1j * (np.asarray(a) - np.asarray(b))))))
+
+
 def pusht_metrics(pred, truth, extras) -> dict[str, np.ndarray]:
   """Per-frame agent and block metrics ``[E, T]`` of ``pred`` against ``truth`` (``[E, T, S, S,
   3]`` uint8, Push-T renders); ``extras`` are not needed."""
@@ -54,6 +88,10 @@ def pusht_metrics(pred, truth, extras) -> dict[str, np.ndarray]:
     error = np.linalg.norm(p_centre - t_centre, axis=-1)
     out[f"{name}_error_px"] = np.where(p_found, error, penalty) * t_found  # nothing to find: 0
     found[name] = p_found | ~t_found
+  _, p_angle, p_found = block_pose(pred_block)
+  _, t_angle, t_found = block_pose(true_block)
+  angle_error = np.where(p_found, _angle_difference_deg(p_angle, t_angle), 180.0)
+  out["block_angle_error_deg"] = angle_error * t_found
   out["agent_found"] = found["agent"].astype(np.float64)
   out["agent_iou"] = _iou(pred_agent, true_agent)
   out["block_iou"] = _iou(pred_block, true_block)
@@ -78,4 +116,5 @@ def pusht_masks(pred, truth, extras) -> np.ndarray:
 FRAME_METRICS = FrameMetrics(
     compute=pusht_metrics, object_masks=pusht_masks, headline="agent_error_px",
     lower_is_better={"agent_error_px": True, "agent_found": False, "agent_iou": False,
-                     "block_error_px": True, "block_iou": False})
+                     "block_error_px": True, "block_angle_error_deg": True,
+                     "block_iou": False})
