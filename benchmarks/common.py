@@ -7,7 +7,6 @@ Config overrides are ``--config.KEY=VALUE``, as for the ``wmjax`` commands
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import resource
@@ -23,21 +22,6 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--config", required=True, help="config file, optionally file.py:arg")
   parser.add_argument("--out", default=None,
                       help="JSON path (default benchmarks/results/<kind>-<name>-<platform>.json)")
-
-
-def add_kernel_arguments(parser: argparse.ArgumentParser) -> None:
-  """``--mlp_blocks``: the tiles of the fused MLP kernels (``model.mlp_kernel=pallas``)."""
-  parser.add_argument("--mlp_blocks", default=None, metavar="R,C,D,WARPS,STAGES",
-                      help="tiles of the fused MLP kernels (model.mlp_kernel=pallas); default: "
-                           "wmjax.nn.kernels.mlp.DEFAULT_BLOCKS")
-
-
-def apply_kernel_arguments(args: argparse.Namespace) -> dict:
-  """Set the fused MLP kernels' tiles from ``args.mlp_blocks`` (before tracing); returns them."""
-  from wmjax.nn.kernels import mlp
-  if args.mlp_blocks:
-    mlp.DEFAULT_BLOCKS = mlp.Blocks(*(int(v) for v in args.mlp_blocks.split(",")))
-  return dataclasses.asdict(mlp.DEFAULT_BLOCKS)
 
 
 def parse_args(parser: argparse.ArgumentParser) -> argparse.Namespace:

@@ -22,8 +22,8 @@ import platform
 import jax
 import jax.numpy as jnp
 
-from common import (add_config_arguments, add_kernel_arguments, apply_kernel_arguments,
-                    median_seconds, parse_args, peak_memory, write_result)
+from common import (add_config_arguments, median_seconds, parse_args, peak_memory,
+                    write_result)
 from profile_ops import format_table, top_ops
 from wmjax.config import load_config
 from wmjax.model import WorldModel
@@ -71,7 +71,7 @@ def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,
       "rollout_frames_per_s": batch * frames / rollout_s,
       "rollout_tflops_per_s": blocks * flops_per_block / rollout_s / 1e12,
       "kv_cache": wm.sampler.kv_cache, "attention_impl": net.attention_impl,
-      "mlp_kernel": net.mlp_kernel, "norm_kernel": net.norm_kernel, **peak_memory(),
+      **peak_memory(),
       "profile": profile,
   }
 
@@ -85,15 +85,12 @@ def main():
   parser.add_argument("--repeats", type=int, default=3)
   parser.add_argument("--profile", default=None, metavar="DIR",
                       help="trace one more rollout per batch into DIR; device time by op")
-  add_kernel_arguments(parser)
   args = parse_args(parser)
-  mlp_blocks = apply_kernel_arguments(args)
   batches = sorted(set(args.batch or [1]))
   runs = [benchmark(args.config, args.overrides, b, args.frames, args.repeats, args.profile)
           for b in batches]
   best = max(runs, key=lambda r: r["rollout_frames_per_s"])
   result = dict(best, batches=runs) if len(runs) > 1 else best
-  result["mlp_blocks"] = mlp_blocks
   args.batch = best["batch"]
   write_result("forward_rollout", result, args)
 

@@ -12,16 +12,11 @@
 #                                    # cost) and at DDIM-10; WPE with and without the KV cache
 #   benchmarks/gpu_suite.sh all
 #
-# The fused kernels (wmjax.nn.kernels), parts that may be named together in one call:
-#   benchmarks/gpu_suite.sh kernels-mlp       # the MLP kernels alone at XL/2's shape against
-#                                             # XLA, tile settings side by side (~2 min); later
-#                                             # parts of the same call take the fastest tiles
-#   benchmarks/gpu_suite.sh kernels-xl-train  # XL/2's train step: baseline, MLP kernel, both
-#                                             # kernels, both unrolled (~4.5 min)
-#   benchmarks/gpu_suite.sh kernels-wpe-train # the same for WPE-600M (~4.5 min)
-#   benchmarks/gpu_suite.sh kernels-rollout   # 59-call rollouts of both, baseline vs both
-#                                             # kernels (~4 min)
-# e.g. `gpu_suite.sh kernels-mlp kernels-xl-train` within one 10-minute command.
+# What the backward pass keeps, one knob at a time (parts that may be named together in one call):
+#   benchmarks/gpu_suite.sh settings-xl-train  # XL/2's train step at batch 16 for each of
+#                                              # TRAIN_SETTINGS (~1 min each)
+#   benchmarks/gpu_suite.sh settings-wpe-train # the same for WPE-600M
+# A setting that does not fit the card is reported and the next one runs.
 #
 # On a machine with no package index (the lent GPU machines), carry .whl/core
 # (experiments/pusht/device_wheels.sh) and start the command with
@@ -80,16 +75,14 @@ rollout() {
   done
 }
 
-# Settings compared, one knob at a time: the XLA baseline, the fused MLP, the fused MLP with the
-# fused LayerNorm-modulate, then the same with unrolled layers (no scan: no per-layer stacking
-# copies of the saved activations). Rollouts: the baseline and both kernels. Tile settings of
-# the MLP kernels: MLP_BLOCKS (the train steps and rollouts use the first),
-# rows,cols,depth,warps,stages each.
-MLP_BLOCKS=${MLP_BLOCKS:-"128,128,64,8,3 128,128,64,4,4 128,256,64,8,3 256,128,64,8,3 64,128,64,4,4"}
-TRAIN_SETTINGS=("mlp_kernel=xla norm_kernel=xla" "mlp_kernel=pallas norm_kernel=xla"
-                "mlp_kernel=pallas norm_kernel=pallas"
-                "mlp_kernel=pallas norm_kernel=pallas scan_layers=False")
-ROLLOUT_SETTINGS=("mlp_kernel=xla norm_kernel=xla" "mlp_kernel=pallas norm_kernel=pallas")
+# Settings compared, one knob at a time: layers scanned or unrolled (a scan stacks each layer's
+# saved activations, copies an unrolled stack does not make), and what remat keeps (weight
+# matmuls, every matmul, everything). The fused Pallas kernels measured here on 2026-11-26 were
+# slower than XLA and were removed (benchmarks/RESULTS.md).
+TRAIN_SETTINGS=(${TRAIN_SETTINGS:+"$TRAIN_SETTINGS"})
+[[ ${#TRAIN_SETTINGS[@]} -gt 0 ]] || TRAIN_SETTINGS=(
+    "remat=dots" "remat=dots scan_layers=False" "remat=dots_all scan_layers=False"
+    "remat=none scan_layers=False")
 
 setting_flags() {  # "k=v k=v" -> --config.model.k=v ... in flags, -v-v in tag
   flags=() tag=""
@@ -99,62 +92,27 @@ setting_flags() {  # "k=v k=v" -> --config.model.k=v ... in flags, -v-v in tag
 
 train_runs() {  # NAME CONFIG: the train step of each TRAIN_SETTINGS; a failing one (out of
   local name=$1 spec=$2 setting flags tag  # memory, say) is reported and the next one runs
-  local blocks=(${MLP_BLOCKS})
   for setting in "${TRAIN_SETTINGS[@]}"; do
     setting_flags "$setting"
     echo "== $name train $setting"
-    $py benchmarks/train_step.py --config "$spec" "${fast[@]}" "${flags[@]}" \
-        --config.model.remat=dots --batch 16 --steps 5 --mlp_blocks "${blocks[0]}" \
-        --out "$out/kernels-train-$name$tag-$platform.json" > "$traces-$name$tag-train.log" 2>&1 \
-      && grep -E '"(step_ms|mfu)"' "$out/kernels-train-$name$tag-$platform.json" \
+    $py benchmarks/train_step.py --config "$spec" "${fast[@]}" "${flags[@]}" --batch 16 \
+        --steps 5 --out "$out/settings-train-$name$tag-$platform.json" \
+        > "$traces-$name$tag-train.log" 2>&1 \
+      && grep -E '"(step_ms|mfu)"' "$out/settings-train-$name$tag-$platform.json" \
       || { echo "train step failed:"; tail -3 "$traces-$name$tag-train.log"; }
   done
-}
-
-rollout_runs() {  # NAME CONFIG FORWARD_ROLLOUT_ARGS...: 59-call rollouts of ROLLOUT_SETTINGS
-  local name=$1 spec=$2 setting flags tag; shift 2
-  local blocks=(${MLP_BLOCKS})
-  for setting in "${ROLLOUT_SETTINGS[@]}"; do
-    setting_flags "$setting"
-    echo "== $name rollout $setting"
-    $py benchmarks/forward_rollout.py --config "$spec" "${fast[@]}" "${flags[@]}" \
-        --config.sampling.num_steps=59 --batch 8 --repeats 2 --mlp_blocks "${blocks[0]}" "$@" \
-        --out "$out/kernels-rollout-$name$tag-$platform.json" > "$traces-$name$tag-roll.log" 2>&1 \
-      && grep -E '"rollout_frames_per_s"' "$out/kernels-rollout-$name$tag-$platform.json" \
-      || { echo "rollout failed:"; tail -3 "$traces-$name$tag-roll.log"; }
-  done
-}
-
-fastest_blocks() {  # the MLP kernels' fastest tile setting in mlp_kernel.py's JSON $1 (else none)
-  $py -c 'import json, sys
-runs = [r for r in json.load(open(sys.argv[1]))["runs"] if r["impl"] == "pallas" and "ms" in r]
-b = min(runs, key=lambda r: r["ms"])["blocks"] if runs else None
-print(",".join(str(b[k]) for k in ("rows", "cols", "depth", "warps", "stages")) if b else "")' "$1"
-}
-
-kernels_mlp() {
-  local blocks=() b best
-  for b in ${MLP_BLOCKS}; do blocks+=(--blocks "$b"); done
-  $py benchmarks/mlp_kernel.py --rows 81920 --width 1152 "${blocks[@]}" \
-      --out "$out/kernels-mlp-xl-$platform.json" 2>&1 | grep -E '^\{"impl"|Error' || true
-  best=$(fastest_blocks "$out/kernels-mlp-xl-$platform.json" 2>/dev/null || true)
-  # the parts after this one take the fastest tiles found (the first of MLP_BLOCKS otherwise)
-  if [[ -n $best ]]; then MLP_BLOCKS="$best ${MLP_BLOCKS}"; echo "MLP tiles: $best"; fi
 }
 
 [[ $# -gt 0 ]] || set -- all
 for part in "$@"; do
   case "$part" in
-    kernels-mlp) kernels_mlp ;;
-    kernels-xl-train) train_runs xl configs/irasim.py:XL ;;
-    kernels-wpe-train) train_runs wpe configs/wpe_600m.py ;;
-    kernels-rollout) rollout_runs xl configs/irasim.py:XL --frames 15
-                     rollout_runs wpe configs/wpe_600m.py --frames 18 ;;
+    settings-xl-train) train_runs xl configs/irasim.py:XL ;;
+    settings-wpe-train) train_runs wpe configs/wpe_600m.py ;;
     check) check ;;
     train) train ;;
     rollout) rollout ;;
     all) train; rollout ;;
-    *) echo "usage: $0 [check|train|rollout|all|kernels-mlp|kernels-xl-train|kernels-wpe-train|"\
-            "kernels-rollout ...]" >&2; exit 2 ;;
+    *) echo "usage: $0 [check|train|rollout|all|settings-xl-train|settings-wpe-train ...]" >&2
+       exit 2 ;;
   esac
 done

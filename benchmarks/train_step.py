@@ -22,8 +22,8 @@ import time
 import jax
 import jax.numpy as jnp
 
-from common import (add_config_arguments, add_kernel_arguments, apply_kernel_arguments,
-                    check_fits, compiled_memory, parse_args, peak_memory, write_result)
+from common import (add_config_arguments, check_fits, compiled_memory, parse_args, peak_memory,
+                    write_result)
 from profile_ops import format_table, top_ops
 from wmjax.config import load_config
 from wmjax.model import WorldModel
@@ -92,7 +92,7 @@ def benchmark(spec: str, overrides: list[str], batch: int, frames: int | None, s
       "step_ms": step_s * 1e3, "samples_per_s": batch / step_s,
       "train_tflop_per_step": flops / 1e12, "achieved_tflops_per_s": achieved,
       "peak_tflops_per_s": peak, "mfu": achieved / (peak * jax.device_count()) if peak else None,
-      "mlp_kernel": wm.network.mlp_kernel, "norm_kernel": wm.network.norm_kernel,
+      "scan_layers": wm.network.scan_layers,
       "loss": float(metrics["loss"]), "compiled_memory": memory, **peak_memory(),
       "profile": profile,
   }
@@ -108,15 +108,12 @@ def main():
   parser.add_argument("--peak_tflops", type=float, default=None, help="per-device peak")
   parser.add_argument("--profile", default=None, metavar="DIR",
                       help="trace 3 steps into DIR and report device time by op")
-  add_kernel_arguments(parser)
   parser.add_argument("--hlo", default=None, metavar="FILE.gz",
                       help="write the compiled step's HLO text (gzipped), to look up profiled ops")
   args = parse_args(parser)
-  mlp_blocks = apply_kernel_arguments(args)
   mesh = tuple(int(v) for v in args.mesh.split(","))
   result = benchmark(args.config, args.overrides, args.batch, args.frames, args.steps, mesh,
                      args.peak_tflops, args.profile, args.hlo)
-  result["mlp_blocks"] = mlp_blocks
   write_result("train_step", result, args)
 
 

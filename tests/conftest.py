@@ -101,7 +101,7 @@ def rng():
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_programs():
   """Drop every module's compiled programs when it ends: the suite compiles hundreds of them
-  (interpret-mode Pallas kernels among them), and one process keeps them all otherwise."""
+  (interpret-mode Pallas attention among them), and one process keeps them all otherwise."""
   yield
   jax.clear_caches()
 

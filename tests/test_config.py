@@ -99,6 +99,9 @@ def test_a_config_saved_by_an_older_version_loads_with_defaults():
   saved["model"]["since_removed"] = 1
   with pytest.raises(ConfigError, match="since_removed"):
     complete_config(saved)
+  with pytest.raises(ConfigError, match="model.mlp_kernel no longer exists: the fused"):
+    complete_config({**saved, "model": {"mlp_kernel": "xla"}})
+  saved["model"]["mlp_kernel"] = "pallas"  # retired: a saved config drops it
   config = complete_config(saved, strict=False)
   assert config.data.train_split == "train" and config.data.eval_split == "test"
   assert config.sampling.kv_cache is False and config.optim.grad_accum == 1
@@ -107,7 +110,7 @@ def test_a_config_saved_by_an_older_version_loads_with_defaults():
   assert config.codec.kind == "pixel"
   # the gridworld's own convention: positions before snap_to_pixels existed were sub-pixel
   assert config.data.gridworld.snap_to_pixels is False
-  assert config.model.since_removed == 1
+  assert config.model.since_removed == 1 and "mlp_kernel" not in config.model
   # a new config that leaves the key (or the whole section) out gets the documented default
   fresh = json.loads(load_config(GRIDWORLD).to_json())
   del fresh["data"]["gridworld"]["snap_to_pixels"]

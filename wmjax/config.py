@@ -419,14 +419,35 @@ def _complete(cls: type, values: Any, where: str, strict: bool, skip: Sequence[s
   return {**{k: given[k] for k in fields}, **out}
 
 
+# Keys that were removed but that configs saved before may hold: why, by (section, key).
+RETIRED_KEYS = {
+    ("model", key): "the fused Pallas kernels it chose were slower than XLA in a whole train step "
+                    "on a GPU, and were removed (benchmarks/RESULTS.md, 2026-11-26)"
+    for key in ("mlp_kernel", "norm_kernel")}
+
+
+def _without_retired(config: Mapping, strict: bool) -> dict:
+  """``config`` without :data:`RETIRED_KEYS`, which a new config (``strict``) may not hold."""
+  config = {k: dict(_plain(v)) if isinstance(_plain(v), Mapping) else v
+            for k, v in _plain(config).items()}
+  for (section, key), why in RETIRED_KEYS.items():
+    if key in config.get(section, {}):
+      if strict:
+        raise ConfigError(f"{section}.{key} no longer exists: {why}")
+      del config[section][key]
+  return config
+
+
 def complete_config(config: Mapping | ml_collections.ConfigDict, strict: bool = True
                     ) -> ml_collections.ConfigDict:
   """``config`` checked against :class:`Config` with every key left out at its default.
 
   Unknown keys and values of the wrong type raise :class:`ConfigError`; ``strict=False`` (for a
-  config saved by another version) keeps unknown keys as they are instead.
+  config saved by another version) keeps unknown keys as they are instead, but drops those of
+  :data:`RETIRED_KEYS`, which a new config may not hold.
   """
-  return ml_collections.ConfigDict(_complete(Config, config, "", strict))
+  return ml_collections.ConfigDict(_complete(Config, _without_retired(config, strict), "",
+                                             strict))
 
 
 def section_config(section: str, **values) -> ml_collections.ConfigDict:

@@ -34,25 +34,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmjax.nn import attention, kernels, layers, text_actions
-from wmjax.nn.kernels.mlp import SAVED_NAME as MLP_SAVED
+from wmjax.nn import attention, layers, text_actions
 from wmjax.nn.layers import logical
 
 COND_MODES = ("frame", "video", "per_frame")
 # How an action reaches its embedding: "raw" numbers (ActionEmbedder), or "text", written as digit
 # tokens and read by a small Transformer (wmjax.nn.text_actions; frame / per_frame cond only).
 ACTION_ENCODINGS = ("raw", "text")
-# What a rematerialised layer keeps from its forward pass for the backward pass. The fused MLP
-# kernel's hidden pre-activation (wmjax.nn.kernels.mlp) counts as a weight matmul's output.
-_policies = jax.checkpoint_policies
-_KEEP_FUSED = _policies.save_only_these_names(MLP_SAVED)
+# What a rematerialised layer keeps from its forward pass for the backward pass.
 REMAT_POLICIES = {
     "none": None,  # no remat: keep every activation (fastest, most memory)
-    "full": _policies.nothing_saveable,  # recompute the whole layer
-    "dots": _policies.save_from_both_policies(  # keep weight matmuls
-        _policies.dots_with_no_batch_dims_saveable, _KEEP_FUSED),
-    "dots_all": _policies.save_from_both_policies(  # keep every matmul, attention's too
-        _policies.dots_saveable, _KEEP_FUSED),
+    "full": jax.checkpoint_policies.nothing_saveable,  # recompute the whole layer
+    "dots": jax.checkpoint_policies.dots_with_no_batch_dims_saveable,  # keep weight matmuls
+    "dots_all": jax.checkpoint_policies.dots_saveable,  # keep every matmul, attention's too
 }
 # How a token knows where it is: "sincos" adds fixed sin-cos embeddings to the tokens; "rope"
 # rotates queries and keys (1-D over frames, axial 2-D over the patch grid), so attention scores
@@ -85,8 +79,6 @@ class LayerStack(nn.Module):
   remat: str
   temporal_first: bool = False
   spatial_rope: bool = False
-  mlp_kernel: str = "xla"
-  norm_kernel: str = "xla"
 
   @nn.compact
   def __call__(self, x, spatial_cond, temporal_cond, patch_positions, cache=None,
@@ -98,8 +90,7 @@ class LayerStack(nn.Module):
     kwargs = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio, causal=self.causal,
                   rope=self.rope, attention_impl=self.attention_impl, dtype=self.dtype,
                   return_kv=return_kv, temporal_first=self.temporal_first,
-                  spatial_rope=self.spatial_rope, mlp_kernel=self.mlp_kernel,
-                  norm_kernel=self.norm_kernel)
+                  spatial_rope=self.spatial_rope)
     inputs = (x, spatial_cond, temporal_cond, patch_positions)
     if self.scan:
       # the scanned layers take frame_pos per layer: as given for the first, zeros for the others
@@ -146,9 +137,6 @@ class STDiT(nn.Module):
   # timestep only, as IRASim's published Frame-Ada checkpoints were trained, final_frame_ada=False)
   final_layer_actions: bool = True
   attention_impl: str | None = "xla"  # a backend of wmjax.nn.attention (None: xla)
-  # fused kernels (wmjax.nn.kernels): one of KERNEL_IMPLS each, 'xla' | 'pallas' | 'auto'
-  mlp_kernel: str = "xla"  # Linear -> GELU -> Linear with the GELU in the matmuls' epilogues
-  norm_kernel: str = "xla"  # LayerNorm -> adaLN modulate in one pass
   dtype: str = "float32"  # compute dtype; parameters are always float32
   scan_layers: bool = True
   remat: str = "none"  # a key of REMAT_POLICIES
@@ -178,8 +166,6 @@ class STDiT(nn.Module):
       raise ValueError(f"hidden_size {self.hidden_size} is not divisible by num_heads {self.num_heads}")
     dtype = jnp.dtype(self.dtype)
     attention.check_backend(self.attention_impl, dtype)
-    kernels.check_kernel("model.mlp_kernel", self.mlp_kernel)
-    kernels.check_kernel("model.norm_kernel", self.norm_kernel)
     d = self.hidden_size
     self.patch_embed = layers.PatchEmbed(self.patch_size, d, dtype=dtype)
     self.time_embed = layers.TimestepEmbedder(d, dtype=dtype)
@@ -196,9 +182,8 @@ class STDiT(nn.Module):
     self.blocks = LayerStack(self.depth // 2, self.num_heads, self.mlp_ratio, self.causal_temporal,
                              "rope" in self.temporal_pos, self.attention_impl, dtype,
                              self.scan_layers, self.remat, self.temporal_first,
-                             "rope" in self.spatial_pos, self.mlp_kernel, self.norm_kernel)
-    self.final_layer = layers.FinalLayer(self.patch_size ** 2 * self.in_channels, dtype=dtype,
-                                         norm_kernel=self.norm_kernel)
+                             "rope" in self.spatial_pos)
+    self.final_layer = layers.FinalLayer(self.patch_size ** 2 * self.in_channels, dtype=dtype)
 
   @property
   def uses_trajectory(self) -> bool:

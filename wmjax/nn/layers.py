@@ -30,9 +30,6 @@ import numpy as np
 from einops import rearrange
 
 from wmjax.nn.attention import attend
-from wmjax.nn.kernels import resolve_kernel
-from wmjax.nn.kernels.mlp import mlp as fused_mlp
-from wmjax.nn.kernels.norm import layer_norm_modulate
 from wmjax.parallel import LOGICAL_RULES, MESH_AXES
 
 Dtype = Any
@@ -212,38 +209,16 @@ def unpatchify(x: jax.Array, grid_h: int, grid_w: int, p: int) -> jax.Array:
 # --------------------------------------------------------------------------- transformer
 
 
-class DenseParams(nn.Module):
-  """The ``kernel [in, out]`` and ``bias [out]`` of an ``nn.Dense`` (same names, initialisers and
-  logical axes), for layers that do their own matmuls."""
-
-  features: int
-  axes: tuple[str, str]
-
-  @nn.compact
-  def __call__(self, in_features: int) -> tuple[jax.Array, jax.Array]:
-    return (self.param("kernel", logical(_xavier, *self.axes), (in_features, self.features)),
-            self.param("bias", logical(_zeros, self.axes[1]), (self.features,)))
-
-
 class Mlp(nn.Module):
-  """``Linear -> GELU(tanh) -> Linear``; ``[..., in] -> [..., features]``.
-
-  ``kernel`` (a key of :data:`wmjax.nn.kernels.KERNEL_IMPLS`): 'xla' runs ``nn.Dense`` layers,
-  'pallas' the fused kernels of :mod:`wmjax.nn.kernels.mlp` on the same parameters.
-  """
+  """``Linear -> GELU(tanh) -> Linear``; ``[..., in] -> [..., features]``."""
 
   features: int
   hidden: int
   in_axis: str = "embed"
   dtype: Dtype = jnp.float32
-  kernel: str = "xla"
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
-    if resolve_kernel("model.mlp_kernel", self.kernel) == "pallas":
-      w1, b1 = DenseParams(self.hidden, (self.in_axis, "mlp"), name="fc1")(x.shape[-1])
-      w2, b2 = DenseParams(self.features, ("mlp", "embed"), name="fc2")(self.hidden)
-      return fused_mlp(x.astype(self.dtype), w1, b1, w2, b2, impl=self.kernel)
     x = nn.Dense(self.hidden, dtype=self.dtype, kernel_init=logical(_xavier, self.in_axis, "mlp"),
                  bias_init=logical(_zeros, "mlp"), name="fc1")(x)
     x = nn.gelu(x, approximate=True)
@@ -300,6 +275,18 @@ class Attention(nn.Module):
     return out, (k, v)
 
 
+def layer_norm(x: jax.Array) -> jax.Array:
+  """LayerNorm without affine parameters (eps 1e-6), computed in float32."""
+  x32 = x.astype(jnp.float32)
+  mean = x32.mean(-1, keepdims=True)
+  var = jnp.square(x32 - mean).mean(-1, keepdims=True)
+  return ((x32 - mean) * jax.lax.rsqrt(var + 1e-6)).astype(x.dtype)
+
+
+def modulate(x: jax.Array, shift: jax.Array, scale: jax.Array) -> jax.Array:
+  return x * (1 + scale) + shift
+
+
 class Modulation(nn.Module):
   """adaLN-Zero regression ``SiLU -> Linear(D, n*D)``, zero-initialised; ``[..., D] -> n x [..., D]``."""
 
@@ -336,8 +323,6 @@ class STBlock(nn.Module):
   rope: bool = False
   attention_impl: str | None = "xla"
   dtype: Dtype = jnp.float32
-  mlp_kernel: str = "xla"  # Linear -> GELU -> Linear: a choice of wmjax.nn.kernels.KERNEL_IMPLS
-  norm_kernel: str = "xla"  # LayerNorm -> modulate: a choice of wmjax.nn.kernels.KERNEL_IMPLS
 
   @nn.compact
   def __call__(self, x: jax.Array, cond: jax.Array, cache=None, positions=None):
@@ -347,7 +332,7 @@ class STBlock(nn.Module):
         m[:, :, None, :] for m in Modulation(6, dtype=self.dtype, name="modulation")(cond))
     attention = Attention(self.num_heads, causal=self.causal, rope=self.rope,
                           implementation=self.attention_impl, dtype=self.dtype, name="attn")
-    h = layer_norm_modulate(x, shift_a, scale_a, impl=self.norm_kernel)
+    h = modulate(layer_norm(x), shift_a, scale_a)
     if self.axis == "spatial":
       if cache is not None:
         raise ValueError("spatial attention takes no cache: frames attend within themselves")
@@ -363,8 +348,8 @@ class STBlock(nn.Module):
     else:
       raise ValueError(f"axis must be 'spatial' or 'temporal', got {self.axis!r}")
     x = x + gate_a * h
-    h = layer_norm_modulate(x, shift_m, scale_m, impl=self.norm_kernel)
-    h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, kernel=self.mlp_kernel, name="mlp")(h)
+    h = modulate(layer_norm(x), shift_m, scale_m)
+    h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, name="mlp")(h)
     return constrain(x + gate_m * h), kv
 
 
@@ -390,14 +375,11 @@ class STLayer(nn.Module):
   return_kv: bool = False
   temporal_first: bool = False
   spatial_rope: bool = False
-  mlp_kernel: str = "xla"
-  norm_kernel: str = "xla"
 
   @nn.compact
   def __call__(self, x, spatial_cond, temporal_cond, patch_positions, cache=None, frame_pos=None):
     common = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio,
-                  attention_impl=self.attention_impl, dtype=self.dtype,
-                  mlp_kernel=self.mlp_kernel, norm_kernel=self.norm_kernel)
+                  attention_impl=self.attention_impl, dtype=self.dtype)
     spatial = STBlock("spatial", rope=self.spatial_rope, **common, name="spatial")
     temporal_block = STBlock("temporal", causal=self.causal, rope=self.rope, **common,
                              name="temporal")
@@ -422,13 +404,12 @@ class FinalLayer(nn.Module):
 
   out_features: int
   dtype: Dtype = jnp.float32
-  norm_kernel: str = "xla"  # LayerNorm -> modulate: a choice of wmjax.nn.kernels.KERNEL_IMPLS
 
   @nn.compact
   def __call__(self, x: jax.Array, cond: jax.Array) -> jax.Array:
     shift, scale = (m[:, :, None, :] for m in Modulation(2, dtype=self.dtype,
                                                           name="modulation")(cond))
-    x = layer_norm_modulate(x, shift, scale, impl=self.norm_kernel)
+    x = modulate(layer_norm(x), shift, scale)
     return nn.Dense(self.out_features, dtype=self.dtype,
                     kernel_init=logical(_zeros, "embed", "patch"),
                     bias_init=logical(_zeros, "patch"), name="linear")(x)

@@ -18,8 +18,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from wmjax.nn.kernels.norm import layer_norm
-from wmjax.nn.layers import Attention, Dtype, Mlp, logical
+from wmjax.nn.layers import Attention, Dtype, Mlp, layer_norm, logical
 
 PLUS, MINUS, POINT, SEPARATOR = 10, 11, 12, 13  # digits are tokens 0..9
 VOCAB_SIZE = 14

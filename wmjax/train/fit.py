@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import ml_collections
 
 from wmjax import parallel
-from wmjax.nn import attention, forward_flops, kernels
+from wmjax.nn import attention, forward_flops
 from wmjax.model import WorldModel
 from wmjax.rollout import block_flops, rollout
 from wmjax.errors import RunError
@@ -125,12 +125,6 @@ def parse_target(spec: str) -> Target:
                        f"; no TPU needed) and a valid topology: {e}") from e
     return Target(spec, "tpu", tuple(topology.devices), TPU_MEMORY[generation])
   raise ValueError(f"unknown compile target {spec!r}; expected {forms}")
-
-
-def fused_kernels(net, platform: str) -> dict[str, str]:
-  """The fused kernels (wmjax.nn.kernels) a network runs on ``platform``: 'xla' or 'pallas'."""
-  return {"mlp": kernels.resolve_kernel("model.mlp_kernel", net.mlp_kernel, platform),
-          "norm": kernels.resolve_kernel("model.norm_kernel", net.norm_kernel, platform)}
 
 
 def _gpu_memory(name: str) -> int:
@@ -232,7 +226,6 @@ def compile_step(config: ml_collections.ConfigDict, target: Target, batch: int |
       "devices": len(target.devices), "mesh": dict(mesh.shape), "batch": batch, "frames": frames,
       "remat": net.remat, "grad_accum": trainer.micro_batches, "dtype": str(net.dtype),
       "attention": attention.resolve_backend(net.attention_impl, net.dtype, target.platform),
-      "kernels": fused_kernels(net, target.platform),
       **memory,
       "analytic_flops": 3 * forward_flops(net, batch, frames, shape[0], shape[1]),
       "compile_s": time.perf_counter() - start,
@@ -274,7 +267,6 @@ def compile_rollout(config: ml_collections.ConfigDict, target: Target, batch: in
       "batch": batch, "context": c, "horizon": h, "sampler": config.sampling.sampler,
       "model_calls": calls, "dtype": str(net.dtype),
       "attention": attention.resolve_backend(net.attention_impl, net.dtype, target.platform),
-      "kernels": fused_kernels(net, target.platform),
       **memory_report(compiled, target, budget_bytes),
       "analytic_flops": block_flops(world_model, batch, c, h, shape[0], shape[1]),
       "compile_s": time.perf_counter() - start,
