@@ -284,10 +284,6 @@ def _set_up(config: ml_collections.ConfigDict, is_chief: bool) -> _Setup:
   mesh = parallel.make_mesh(config.mesh)
   parallel.check_batch_divisible(config.batch_size, mesh, processes=jax.process_count(),
                                  what="global batch_size")
-  world_model = WorldModel.from_config(config)
-  frame_shape, frames = tuple(config.frame_shape), config.data.frames
-  parallel.check_shardable(
-      jax.eval_shape(lambda: world_model.init(jax.random.key(0), frame_shape, frames)), mesh)
   say = functools.partial(print, flush=True) if is_chief else lambda *_: None
   say(f"hint: analytic {memory.describe(memory.estimate(config, jax.device_count()))}")
   config, trainer, _ = fit.fit_for_training(config, log=say)
