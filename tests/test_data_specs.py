@@ -5,6 +5,7 @@ import io
 import json
 import logging
 import os
+import shutil
 import subprocess
 import sys
 
@@ -13,8 +14,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from PIL import Image
+from tensorflow_datasets.core import file_adapters
 
 import oxe_fixtures
+from conftest import ROOT, one_line_error
 from wmjax.data import oxe
 from wmjax.data.convert import convert_to_array_record
 from wmjax.data.lerobot import import_lerobot
@@ -233,6 +236,42 @@ def test_inspect_recognises_a_string_tensor_instruction():
       "observation/natural_language_instruction", "text")
   assert spec.image_keys == ("observation/rgb",) and spec.action_dim == 3
   assert builtin_spec("mine", features) is None  # no built-in layout has observation/rgb
+
+
+def _damaged_copy(builder_dir, destination, records=None):
+  """A copy of a one-shard builder directory whose shard is emptied (``records=None``: 0 bytes)
+  or rewritten as an ArrayRecord file of ``records``; its dataset_info.json still counts 3."""
+  shutil.copytree(builder_dir, destination)
+  (shard,) = destination.glob("*-train.*-00000-of-00001")
+  shard.write_bytes(b"")
+  if records is not None:
+    shard.unlink()
+    file_adapters.ArrayRecordFileAdapter.write_examples(shard, ((None, r) for r in records))
+  return shard
+
+
+def test_damaged_shards_are_refused_before_anything_is_written(fractal, tmp_path, capsys):
+  """Issue 49: an empty TFRecord shard, an empty ArrayRecord shard and an ArrayRecord shard of no
+  records (what converting an empty TFRecord shard used to write) beside a dataset_info.json
+  that counts 3 episodes: inspect, convert and train exit 2 naming the shard; convert writes no
+  output and train leaves no workdir."""
+  tfrecord_dir, array_record_dir = fractal
+  shard = _damaged_copy(tfrecord_dir, tmp_path / "tfrecord")
+  empty = rf"{shard.name} is empty \(0 bytes\), but dataset_info.json counts 3 episodes in it"
+  one_line_error(capsys, ["data", "inspect", str(shard.parent)], empty)
+  one_line_error(capsys, ["data", "convert", str(shard.parent), str(tmp_path / "out")], empty)
+  assert sorted(os.listdir(tmp_path)) == ["tfrecord"]
+  for name, records, problem in (("empty", None, r"is empty \(0 bytes\)"),
+                                 ("no_records", [], "holds 0 episodes")):
+    shard = _damaged_copy(array_record_dir, tmp_path / name, records)
+    message = rf"{shard.name} {problem}, but dataset_info.json counts 3 episodes in it"
+    one_line_error(capsys, ["data", "inspect", str(shard.parent)], message)
+    workdir = tmp_path / f"run_{name}"
+    one_line_error(capsys, ["train", "--config", os.path.join(ROOT, "configs", "rlds.py"),
+                            "--workdir", str(workdir), f"--config.data.builder_dir={shard.parent}",
+                            "--config.data.dataset='fractal20220817_data'",
+                            "--config.model.action_dim=7"], message)
+    assert not workdir.exists()
 
 
 # ----------------------------------------------------------------------------- LeRobot
