@@ -229,6 +229,21 @@ def test_an_unreadable_video_is_an_error_naming_it(tmp_path, capsys):
   assert not os.path.exists(tmp_path / "out")
 
 
+def test_a_video_longer_than_its_actions_is_cut_with_a_warning_counting_it(tmp_path, capsys,
+                                                                           caplog):
+  """Issue 49: 5 actions beside a 32-frame mp4 import 5 steps and say that 27 frames are left
+  out, naming the video."""
+  root = write_wpe(tmp_path / "converted", {"rt_1": {"train": (32, 4)}})
+  np.savez(root / "rt_1" / "train" / "000000000.npz", np.zeros((5, 10), np.float32))
+  with caplog.at_level(logging.WARNING, logger="wmjax.data.writer"):
+    out = _import(capsys, "wpe", root, tmp_path / "out")
+  video = root / "rt_1" / "train" / "000000000.mp4"
+  assert [r.getMessage() for r in caplog.records if r.name == "wmjax.data.writer"] == [
+      f"{video} has 32 frames but its episode 5 actions (one per frame): imported 5 steps, 27 "
+      f"frames left out"]
+  assert ArrayRecordEpisodes(out, "train").lengths().tolist() == [5, 4]
+
+
 def test_a_video_shorter_than_its_actions_is_an_error_naming_it(tmp_path, capsys):
   root = write_wpe(tmp_path / "converted", {"rt_1": {"train": (3,)}})
   np.savez(root / "rt_1" / "train" / "000000000.npz", np.zeros((5, 10), np.float32))

@@ -14,8 +14,9 @@ in name order and, within one, by file name; ``dataset_info.json`` records how m
 gave (``subsets``), so ``train[:N]`` can pick the first. DIR may also be one subset's directory
 (holding ``train/`` or ``test/``). As WPE does, an mp4 without its npz or with an npz that does
 not load is skipped (counted in the log), and so is an episode of no steps; actions of another
-width than the first episode's, or a video shorter than its actions, are errors naming the file
-(later frames are left out).
+width than the first episode's, or a video shorter than its actions, are errors naming the file;
+a video longer than its actions is imported to their length with a warning naming it and
+counting the frames left out.
 """
 
 from __future__ import annotations
