@@ -7,11 +7,13 @@ import dataclasses
 import json
 import logging
 import os
+import re
 import shlex
 
 import numpy as np
 import pytest
 
+from conftest import one_line_error
 from wmjax import cli
 from wmjax.data import oxe
 from wmjax.data.rlds import decode_image
@@ -183,6 +185,24 @@ def test_wpe_import_pools_subsets_and_skips_like_wpe(tmp_path, capsys, caplog):
   for path in (only, single):
     assert ArrayRecordEpisodes(path, "test").lengths().tolist() == [3]
     assert open_builder(path).info.metadata["subsets"]["train"] == {"rt_1": 1}
+
+
+def test_inspect_on_a_raw_folder_names_the_import_command(tmp_path, capsys):
+  """Issue 49: a LeRobot (recognised by its meta/info.json alone), IRASim or WPE folder given
+  where a prepared dataset belongs: one line with the `wmjax data import` command for it."""
+  lerobot = tmp_path / "lerobot"
+  os.makedirs(lerobot / "meta")
+  (lerobot / "meta" / "info.json").write_text("{}")
+  wpe = write_wpe(tmp_path / "converted", {"rt_1": {"train": (3,)}})
+  folders = {lerobot: ("lerobot", "LeRobot"), wpe: ("wpe", "WPE"), wpe / "rt_1": ("wpe", "WPE"),
+             write_irasim(tmp_path, "rt1", {"test": (3,)}): ("irasim", "IRASim")}
+  for path, (command, name) in folders.items():
+    one_line_error(capsys, ["data", "inspect", str(path)],
+                   rf"no TFDS dataset at '{re.escape(str(path))}' but a raw {name} dataset: "
+                   rf"import it first with `wmjax data import {command} {re.escape(str(path))} "
+                   rf"OUT_DIR`, then use OUT_DIR")
+  one_line_error(capsys, ["data", "inspect", str(tmp_path / "rt1" / "annotation")],
+                 r"\(expected dataset_info.json and features.json of a prepared dataset\)")
 
 
 def test_an_annotation_without_actions_is_an_error_naming_it(tmp_path, capsys):

@@ -35,12 +35,25 @@ log = logging.getLogger(__name__)
 
 
 def open_builder(builder_dir: str):
-  """``tfds.builder_from_directory`` with a clear error when the directory holds no dataset."""
+  """``tfds.builder_from_directory`` with a clear error when the directory holds no dataset:
+  the ``wmjax data import`` command when it holds a raw LeRobot, IRASim or WPE dataset."""
   try:
     return tfds.builder_from_directory(os.fspath(builder_dir))
   except Exception as e:  # tfds raises several types for a missing / malformed directory
-    raise ValueError(f"no TFDS dataset at {builder_dir!r} (expected dataset_info.json and "
-                     f"features.json of a prepared dataset): {e}") from e
+    hint = _import_hint(os.fspath(builder_dir))
+    raise ValueError(f"no TFDS dataset at {builder_dir!r} " + (hint or (
+        f"(expected dataset_info.json and features.json of a prepared dataset): {e}"))) from e
+
+
+def _import_hint(path: str) -> str | None:
+  """How to import the raw dataset at ``path``, or None when it holds none that wmjax imports."""
+  from wmjax.data import irasim, lerobot, wpe
+  for command, name, module in (("lerobot", "LeRobot", lerobot), ("irasim", "IRASim", irasim),
+                                ("wpe", "WPE", wpe)):
+    if module.recognises(path):
+      return (f"but a raw {name} dataset: import it first with `wmjax data import {command} "
+              f"{path} OUT_DIR`, then use OUT_DIR")
+  return None
 
 
 def check_shards(builder, builder_dir: str, split: str | None = None) -> None:

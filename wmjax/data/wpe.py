@@ -38,6 +38,13 @@ log = logging.getLogger(__name__)
 SPLITS = ("train", "test")
 
 
+def recognises(src: str) -> bool:
+  """Whether ``src`` holds WPE episodes: ``<split>/*.npz`` (one subset's directory) or
+  ``<subset>/<split>/*.npz``."""
+  return any(glob.glob(os.path.join(src, *subset, split, "*.npz"))
+             for subset in ((), ("*",)) for split in SPLITS)
+
+
 def _load_actions(path: str) -> np.ndarray | None:
   """``arr_0`` of an npz as float32, or None when it does not load (WPE skips those)."""
   try:
