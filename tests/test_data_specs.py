@@ -199,6 +199,15 @@ def test_a_spec_in_config_reads_like_the_built_in_one(fractal):
     oxe.specs_from_config({**config, "spec": dict(config["spec"], action_transforms=("", "", "x"))})
   with pytest.raises(ValueError, match="no config.data.spec"):
     oxe.specs_from_config({"dataset": "my_robot"})
+  # issue 49: the spec's default instruction key is not fractal's: the error names the field,
+  # what the dataset has instead and the config key, not every step key
+  without = {"dataset": "my_robot", "spec": dict(config["spec"], instruction_key="wrong")}
+  with pytest.raises(ValueError) as error:
+    ArrayRecordEpisodes(array_record_dir, "train", oxe.specs_from_config(without))
+  assert str(error.value) == (
+      "my_robot: the dataset's features match no known layout: spec.instruction_key 'wrong' not "
+      "among the step keys (instructions there: ['observation/natural_language_instruction']); "
+      "set config.data.spec.instruction_key ('' for none)")
 
 
 def test_inspect_prints_features_and_a_spec_that_reads(fractal):
@@ -211,6 +220,11 @@ def test_inspect_prints_features_and_a_spec_that_reads(fractal):
           in out and f"--config.data.builder_dir={array_record_dir} --config.data.dataset="
           "fractal20220817_data --config.model.action_dim=7" in out)
   assert "suggested spec" not in out
+  # issue 49: the keys the spec reads, and two decoded instructions per split
+  assert ("reads: image observation/image; instruction observation/natural_language_instruction; "
+          "actions action/world_vector + action/rotation_delta + "
+          "action/gripper_closedness_action\ninstructions (first two episodes):\n"
+          "  train: 'pick up the red block', ''\n") in out
   from wmjax.data.describe import suggest_spec
   spec = suggest_spec("fractal", open_builder(array_record_dir).info.features)
   assert spec.action_keys == ("action/base_displacement_vector",  # name order, gripper last
@@ -220,6 +234,13 @@ def test_inspect_prints_features_and_a_spec_that_reads(fractal):
   assert spec.instruction_key == "observation/natural_language_instruction"
   episodes = ArrayRecordEpisodes(array_record_dir, "train", spec)
   assert episodes.episode(0).instruction == oxe_fixtures.INSTRUCTIONS[0]
+
+
+def test_inspect_decodes_instructions_from_tfrecord_too(fractal, capsys):
+  from wmjax import cli
+  assert cli.main(["data", "inspect", fractal[0]]) == 0
+  assert "instructions (first two episodes):\n  train: 'pick up the red block', ''\n" in (
+      capsys.readouterr().out)
 
 
 def test_inspect_recognises_a_string_tensor_instruction():
