@@ -259,35 +259,45 @@ def test_inspect_recognises_a_string_tensor_instruction():
   assert builtin_spec("mine", features) is None  # no built-in layout has observation/rgb
 
 
-def _damaged_copy(builder_dir, destination, records=None):
-  """A copy of a one-shard builder directory whose shard is emptied (``records=None``: 0 bytes)
-  or rewritten as an ArrayRecord file of ``records``; its dataset_info.json still counts 3."""
+def _damaged_copy(builder_dir, destination, damage):
+  """A copy of a one-shard builder directory whose shard ``damage(path)`` rewrites; its
+  dataset_info.json still counts 3 episodes."""
   shutil.copytree(builder_dir, destination)
   (shard,) = destination.glob("*-train.*-00000-of-00001")
-  shard.write_bytes(b"")
-  if records is not None:
-    shard.unlink()
-    file_adapters.ArrayRecordFileAdapter.write_examples(shard, ((None, r) for r in records))
+  damage(shard)
   return shard
 
 
+def _emptied(shard):
+  shard.write_bytes(b"")
+
+
+def _cut_in_half(shard):
+  shard.write_bytes(shard.read_bytes()[:shard.stat().st_size // 2])
+
+
+def _without_records(shard):  # what converting an empty TFRecord shard used to write
+  shard.unlink()
+  file_adapters.ArrayRecordFileAdapter.write_examples(shard, iter(()))
+
+
 def test_damaged_shards_are_refused_before_anything_is_written(fractal, tmp_path, capsys):
-  """Issue 49: an empty TFRecord shard, an empty ArrayRecord shard and an ArrayRecord shard of no
-  records (what converting an empty TFRecord shard used to write) beside a dataset_info.json
-  that counts 3 episodes: inspect, convert and train exit 2 naming the shard; convert writes no
-  output and train leaves no workdir."""
+  """Issue 49: an empty TFRecord shard, and an ArrayRecord shard that is empty, cut short or of no
+  records, beside a dataset_info.json that counts 3 episodes: inspect, convert and train exit 2
+  naming the shard; convert writes no output and train leaves no workdir."""
   tfrecord_dir, array_record_dir = fractal
-  shard = _damaged_copy(tfrecord_dir, tmp_path / "tfrecord")
+  shard = _damaged_copy(tfrecord_dir, tmp_path / "tfrecord", _emptied)
   empty = rf"{shard.name} is empty \(0 bytes\), but dataset_info.json counts 3 episodes in it"
   one_line_error(capsys, ["data", "inspect", str(shard.parent)], empty)
   one_line_error(capsys, ["data", "convert", str(shard.parent), str(tmp_path / "out")], empty)
   assert sorted(os.listdir(tmp_path)) == ["tfrecord"]
-  for name, records, problem in (("empty", None, r"is empty \(0 bytes\)"),
-                                 ("no_records", [], "holds 0 episodes")):
-    shard = _damaged_copy(array_record_dir, tmp_path / name, records)
-    message = rf"{shard.name} {problem}, but dataset_info.json counts 3 episodes in it"
+  for damage, problem in ((_emptied, r"is empty \(0 bytes\)"),
+                          (_cut_in_half, r"is not a readable ArrayRecord file"),
+                          (_without_records, "holds 0 episodes")):
+    shard = _damaged_copy(array_record_dir, tmp_path / damage.__name__, damage)
+    message = rf"{shard.name} {problem}.*, but dataset_info.json counts 3 episodes in it"
     one_line_error(capsys, ["data", "inspect", str(shard.parent)], message)
-    workdir = tmp_path / f"run_{name}"
+    workdir = tmp_path / f"run{damage.__name__}"
     one_line_error(capsys, ["train", "--config", os.path.join(ROOT, "configs", "rlds.py"),
                             "--workdir", str(workdir), f"--config.data.builder_dir={shard.parent}",
                             "--config.data.dataset='fractal20220817_data'",

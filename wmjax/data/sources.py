@@ -84,13 +84,11 @@ def _shard_problem(path: str, file_format: str, expected: int) -> str | None:
   if file_format != "array_record":
     return None
   from array_record.python import array_record_module
-  reader = array_record_module.ArrayRecordReader(path)
-  try:
-    if not reader.ok():
-      return "is not a readable ArrayRecord file (truncated or corrupted)"
-    count = reader.num_records()
-  finally:
-    reader.close()
+  reader = array_record_module.ArrayRecordReader(path, "readahead_buffer_size:0,max_parallelism:0")
+  if not reader.ok():  # nothing to close (closing it raises)
+    return "is not a readable ArrayRecord file (truncated or corrupted)"
+  count = reader.num_records()
+  reader.close()
   return None if count == expected else f"holds {count} episodes"
 
 
