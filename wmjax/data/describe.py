@@ -34,7 +34,8 @@ def suggest_spec(name: str, features) -> oxe.DatasetSpec:
     raise ValueError(f"{name}: no image feature among the steps' keys {sorted(steps)}")
   preferred = [k for k in cameras if k.split("/")[-1] in ("image", "image_0", "rgb")]
   camera = (preferred or cameras)[0]
-  texts = [k for k, f in steps.items() if oxe.is_text_feature(f) and ("instruction" in k or "language" in k)]
+  texts = [k for k, f in steps.items()
+           if oxe.is_text_feature(f) and ("instruction" in k or "language" in k)]
   codes = [k for k, f in steps.items()
            if "instruction" in k and np.dtype(f.np_dtype).kind in "iu" and _size(f) > 1]
   instruction, encoding = ((texts[0], "text") if texts else (codes[0], "utf8_codes") if codes

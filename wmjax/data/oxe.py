@@ -11,8 +11,9 @@ published actions are used as they are — and the datasets wmjax generates (gri
 registered by their modules). A dataset may have several published layouts; :func:`resolve_spec`
 picks the first whose keys the builder's ``info.features`` holds, or fails naming, for the
 closest layout, each spec field whose keys the features lack, what they hold instead and the
-config key that chooses it. Any other RLDS dataset is read by a spec given in ``config.data.spec`` (its
-schema is :class:`DatasetSpec`, see :func:`spec_config`); ``wmjax data inspect`` suggests one.
+config key that chooses it. Any other RLDS dataset is read by a spec given in
+``config.data.spec`` (its schema is :class:`DatasetSpec`, see :func:`spec_config`); ``wmjax data
+inspect`` suggests one.
 """
 
 from __future__ import annotations
@@ -316,12 +317,17 @@ def missing_keys(spec: DatasetSpec, steps: Mapping[str, Any]) -> dict[str, tuple
   return {field: keys for field, keys in missing.items() if keys}
 
 
+def _is_instruction(key: str, feature) -> bool:
+  """Text, or an integer array of UTF-8 codes named an instruction (Language-Table's)."""
+  return is_text_feature(feature) or (
+      "instruction" in key and np.dtype(feature.np_dtype).kind in "iu")
+
+
 # Per key field of a spec: what the dataset offers instead (a predicate on (key, feature)) and
 # how a config chooses it.
 _KEY_FIELDS = {
     "image_keys": ("cameras", lambda key, f: is_image_feature(f), "config.data.image_key"),
-    "instruction_key": ("instructions", lambda key, f: is_text_feature(f) or (
-        "instruction" in key and np.dtype(f.np_dtype).kind in "iu"),
+    "instruction_key": ("instructions", _is_instruction,
                         "config.data.spec.instruction_key ('' for none)"),
     "action_keys": ("actions", lambda key, f: key == "action" or key.startswith("action/"),
                     "config.data.spec.action_keys"),
