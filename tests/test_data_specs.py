@@ -5,6 +5,7 @@ import io
 import json
 import logging
 import os
+import shutil
 import subprocess
 import sys
 
@@ -13,8 +14,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from PIL import Image
+from tensorflow_datasets.core import file_adapters
 
 import oxe_fixtures
+from conftest import ROOT, one_line_error
 from wmjax.data import oxe
 from wmjax.data.convert import convert_to_array_record
 from wmjax.data.lerobot import import_lerobot
@@ -196,6 +199,15 @@ def test_a_spec_in_config_reads_like_the_built_in_one(fractal):
     oxe.specs_from_config({**config, "spec": dict(config["spec"], action_transforms=("", "", "x"))})
   with pytest.raises(ValueError, match="no config.data.spec"):
     oxe.specs_from_config({"dataset": "my_robot"})
+  # issue 49: the spec's default instruction key is not fractal's: the error names the field,
+  # what the dataset has instead and the config key, not every step key
+  without = {"dataset": "my_robot", "spec": dict(config["spec"], instruction_key="wrong")}
+  with pytest.raises(ValueError) as error:
+    ArrayRecordEpisodes(array_record_dir, "train", oxe.specs_from_config(without))
+  assert str(error.value) == (
+      "my_robot: the dataset's features match no known layout: spec.instruction_key 'wrong' not "
+      "among the step keys (instructions there: ['observation/natural_language_instruction']); "
+      "set config.data.spec.instruction_key ('' for none)")
 
 
 def test_inspect_prints_features_and_a_spec_that_reads(fractal):
@@ -208,6 +220,11 @@ def test_inspect_prints_features_and_a_spec_that_reads(fractal):
           in out and f"--config.data.builder_dir={array_record_dir} --config.data.dataset="
           "fractal20220817_data --config.model.action_dim=7" in out)
   assert "suggested spec" not in out
+  # issue 49: the keys the spec reads, and two decoded instructions per split
+  assert ("reads: image observation/image; instruction observation/natural_language_instruction; "
+          "actions action/world_vector + action/rotation_delta + "
+          "action/gripper_closedness_action\ninstructions (first two episodes):\n"
+          "  train: 'pick up the red block', ''\n") in out
   from wmjax.data.describe import suggest_spec
   spec = suggest_spec("fractal", open_builder(array_record_dir).info.features)
   assert spec.action_keys == ("action/base_displacement_vector",  # name order, gripper last
@@ -217,6 +234,13 @@ def test_inspect_prints_features_and_a_spec_that_reads(fractal):
   assert spec.instruction_key == "observation/natural_language_instruction"
   episodes = ArrayRecordEpisodes(array_record_dir, "train", spec)
   assert episodes.episode(0).instruction == oxe_fixtures.INSTRUCTIONS[0]
+
+
+def test_inspect_decodes_instructions_from_tfrecord_too(fractal, capsys):
+  from wmjax import cli
+  assert cli.main(["data", "inspect", fractal[0]]) == 0
+  assert "instructions (first two episodes):\n  train: 'pick up the red block', ''\n" in (
+      capsys.readouterr().out)
 
 
 def test_inspect_recognises_a_string_tensor_instruction():
@@ -233,6 +257,52 @@ def test_inspect_recognises_a_string_tensor_instruction():
       "observation/natural_language_instruction", "text")
   assert spec.image_keys == ("observation/rgb",) and spec.action_dim == 3
   assert builtin_spec("mine", features) is None  # no built-in layout has observation/rgb
+
+
+def _damaged_copy(builder_dir, destination, damage):
+  """A copy of a one-shard builder directory whose shard ``damage(path)`` rewrites; its
+  dataset_info.json still counts 3 episodes."""
+  shutil.copytree(builder_dir, destination)
+  (shard,) = destination.glob("*-train.*-00000-of-00001")
+  damage(shard)
+  return shard
+
+
+def _emptied(shard):
+  shard.write_bytes(b"")
+
+
+def _cut_in_half(shard):
+  shard.write_bytes(shard.read_bytes()[:shard.stat().st_size // 2])
+
+
+def _without_records(shard):  # what converting an empty TFRecord shard used to write
+  shard.unlink()
+  file_adapters.ArrayRecordFileAdapter.write_examples(shard, iter(()))
+
+
+def test_damaged_shards_are_refused_before_anything_is_written(fractal, tmp_path, capsys):
+  """Issue 49: an empty TFRecord shard, and an ArrayRecord shard that is empty, cut short or of no
+  records, beside a dataset_info.json that counts 3 episodes: inspect, convert and train exit 2
+  naming the shard; convert writes no output and train leaves no workdir."""
+  tfrecord_dir, array_record_dir = fractal
+  shard = _damaged_copy(tfrecord_dir, tmp_path / "tfrecord", _emptied)
+  empty = rf"{shard.name} is empty \(0 bytes\), but dataset_info.json counts 3 episodes in it"
+  one_line_error(capsys, ["data", "inspect", str(shard.parent)], empty)
+  one_line_error(capsys, ["data", "convert", str(shard.parent), str(tmp_path / "out")], empty)
+  assert sorted(os.listdir(tmp_path)) == ["tfrecord"]
+  for damage, problem in ((_emptied, r"is empty \(0 bytes\)"),
+                          (_cut_in_half, r"is not a readable ArrayRecord file"),
+                          (_without_records, "holds 0 episodes")):
+    shard = _damaged_copy(array_record_dir, tmp_path / damage.__name__, damage)
+    message = rf"{shard.name} {problem}.*, but dataset_info.json counts 3 episodes in it"
+    one_line_error(capsys, ["data", "inspect", str(shard.parent)], message)
+    workdir = tmp_path / f"run{damage.__name__}"
+    one_line_error(capsys, ["train", "--config", os.path.join(ROOT, "configs", "rlds.py"),
+                            "--workdir", str(workdir), f"--config.data.builder_dir={shard.parent}",
+                            "--config.data.dataset='fractal20220817_data'",
+                            "--config.model.action_dim=7"], message)
+    assert not workdir.exists()
 
 
 # ----------------------------------------------------------------------------- LeRobot

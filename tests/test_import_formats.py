@@ -7,11 +7,13 @@ import dataclasses
 import json
 import logging
 import os
+import re
 import shlex
 
 import numpy as np
 import pytest
 
+from conftest import one_line_error
 from wmjax import cli
 from wmjax.data import oxe
 from wmjax.data.rlds import decode_image
@@ -185,6 +187,24 @@ def test_wpe_import_pools_subsets_and_skips_like_wpe(tmp_path, capsys, caplog):
     assert open_builder(path).info.metadata["subsets"]["train"] == {"rt_1": 1}
 
 
+def test_inspect_on_a_raw_folder_names_the_import_command(tmp_path, capsys):
+  """Issue 49: a LeRobot (recognised by its meta/info.json alone), IRASim or WPE folder given
+  where a prepared dataset belongs: one line with the `wmjax data import` command for it."""
+  lerobot = tmp_path / "lerobot"
+  os.makedirs(lerobot / "meta")
+  (lerobot / "meta" / "info.json").write_text("{}")
+  wpe = write_wpe(tmp_path / "converted", {"rt_1": {"train": (3,)}})
+  folders = {lerobot: ("lerobot", "LeRobot"), wpe: ("wpe", "WPE"), wpe / "rt_1": ("wpe", "WPE"),
+             write_irasim(tmp_path, "rt1", {"test": (3,)}): ("irasim", "IRASim")}
+  for path, (command, name) in folders.items():
+    one_line_error(capsys, ["data", "inspect", str(path)],
+                   rf"no TFDS dataset at '{re.escape(str(path))}' but a raw {name} dataset: "
+                   rf"import it first with `wmjax data import {command} {re.escape(str(path))} "
+                   rf"OUT_DIR`, then use OUT_DIR")
+  one_line_error(capsys, ["data", "inspect", str(tmp_path / "rt1" / "annotation")],
+                 r"\(expected dataset_info.json and features.json of a prepared dataset\)")
+
+
 def test_an_annotation_without_actions_is_an_error_naming_it(tmp_path, capsys):
   src = write_irasim(tmp_path, "languagetable", {"test": (4, 4)})
   path = src / "annotation" / "test" / "000001.json"
@@ -227,6 +247,21 @@ def test_an_unreadable_video_is_an_error_naming_it(tmp_path, capsys):
   line = _error(capsys, "wpe", root, tmp_path / "out")
   assert f"{video} is not a readable video" in line
   assert not os.path.exists(tmp_path / "out")
+
+
+def test_a_video_longer_than_its_actions_is_cut_with_a_warning_counting_it(tmp_path, capsys,
+                                                                           caplog):
+  """Issue 49: 5 actions beside a 32-frame mp4 import 5 steps and say that 27 frames are left
+  out, naming the video."""
+  root = write_wpe(tmp_path / "converted", {"rt_1": {"train": (32, 4)}})
+  np.savez(root / "rt_1" / "train" / "000000000.npz", np.zeros((5, 10), np.float32))
+  with caplog.at_level(logging.WARNING, logger="wmjax.data.writer"):
+    out = _import(capsys, "wpe", root, tmp_path / "out")
+  video = root / "rt_1" / "train" / "000000000.mp4"
+  assert [r.getMessage() for r in caplog.records if r.name == "wmjax.data.writer"] == [
+      f"{video} has 32 frames but its episode 5 actions (one per frame): imported 5 steps, 27 "
+      f"frames left out"]
+  assert ArrayRecordEpisodes(out, "train").lengths().tolist() == [5, 4]
 
 
 def test_a_video_shorter_than_its_actions_is_an_error_naming_it(tmp_path, capsys):

@@ -1,9 +1,12 @@
 """Video metrics against the reference libraries (scikit-image, dm-pix, scipy), the gridworld
 square-position error, Fréchet distances and aggregation."""
 
+import inspect
 import warnings
 
 import dm_pix
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
@@ -79,18 +82,58 @@ def test_grayscale_metrics_follow_irasim():
       rtol=1e-5)
 
 
-def test_float_frames_in_zero_one_are_warned_about():
-  """The metrics read float frames as [-1, 1]; [0, 1] floats would give a PSNR ~6 dB too high."""
+def test_the_dtype_gives_the_range_and_values_are_never_inspected():
+  """uint8 frames are 0..255, float frames [-1, 1]; other dtypes are refused, not guessed."""
   a, b = _pair((2, 16, 16, 3), seed=5)
-  unit_a, unit_b = a / np.float32(255), b / np.float32(255)
-  with pytest.warns(UserWarning, match=r"floats in \[0, 1\].*pass uint8 frames or 2 \* frames - 1"):
-    wrong = metrics.psnr(unit_a, unit_b)
-  np.testing.assert_allclose(wrong - metrics.psnr(a, b), 6.0, atol=0.5)
+  as_model = lambda x: x.astype(np.float32) / 127.5 - 1.0
   with warnings.catch_warnings():
-    warnings.simplefilter("error")  # uint8, [-1, 1] floats and the grayscale path say nothing
-    np.testing.assert_allclose(metrics.psnr(2 * unit_a - 1, 2 * unit_b - 1), metrics.psnr(a, b),
+    warnings.simplefilter("error")
+    np.testing.assert_allclose(metrics.psnr(as_model(a), as_model(b)), metrics.psnr(a, b),
                                rtol=1e-5)
+    # [0, 1] floats are read as [-1, 1] (about 6 dB too high) without a look at their values
+    unit_a, unit_b = a / np.float32(255), b / np.float32(255)
+    np.testing.assert_allclose(metrics.psnr(unit_a, unit_b) - metrics.psnr(a, b), 6.0, atol=0.5)
     metrics.frame_metrics(a[None], b[None], {})
+  for fn in (metrics.psnr, metrics.ssim, metrics.mse):
+    with pytest.raises(ValueError, match="uint8 .* or floats in \\[-1, 1\\], got int32"):
+      fn(a.astype(np.int32), b)
+  with pytest.raises(ValueError, match="got int32"):
+    metrics.grayscale(a.astype(np.int32))
+
+
+# every public per-frame metric as f(pred, target, mask); only masked_mse reads the mask
+_METRICS = {
+    "psnr": lambda p, t, m: metrics.psnr(p, t),
+    "ssim": lambda p, t, m: metrics.ssim(p, t, "gaussian"),
+    "ssim_uniform": lambda p, t, m: metrics.ssim(p, t, "uniform"),
+    "mse": lambda p, t, m: metrics.mse(p, t),
+    "masked_mse": metrics.masked_mse,
+    "latent_l2": lambda p, t, m: metrics.latent_l2(p, t),
+    "grayscale": lambda p, t, m: metrics.grayscale(p),
+}
+
+
+def test_every_metric_is_pure_under_jit_vmap_and_grad():
+  """The metrics check shapes and dtypes only (no value leaves the device), so they trace."""
+  public = {name for name, fn in vars(metrics).items() if not name.startswith("_")
+            and callable(fn) and getattr(fn, "__module__", None) == metrics.__name__
+            and inspect.signature(fn).return_annotation == "jax.Array"}
+  assert public <= {name.removesuffix("_uniform") for name in _METRICS}, public
+  a, b = _pair((2, 3, 16, 16, 3), seed=4)
+  mask = np.zeros((2, 3, 16, 16), bool)
+  mask[..., 4:12, 2:9] = True
+  as_model = lambda x: x.astype(np.float32) / 127.5 - 1.0
+  for pred, target in ((a, b), (as_model(a), as_model(b))):
+    for name, fn in _METRICS.items():
+      eager = np.asarray(fn(pred, target, mask))
+      for transformed in (jax.jit(fn), jax.vmap(fn)):
+        np.testing.assert_allclose(transformed(pred, target, mask), eager, rtol=1e-5,
+                                   err_msg=name)
+  for name, fn in _METRICS.items():
+    if name == "grayscale":  # uint8 luma: rounded, no gradient
+      continue
+    grad = jax.grad(lambda p: jnp.sum(fn(p, target, mask)))(pred)
+    assert grad.shape == pred.shape and np.isfinite(grad).all() and np.abs(grad).sum() > 0, name
 
 
 def test_mse_latent_l2_and_masked_mse():

@@ -180,3 +180,18 @@ def test_scan_equals_the_environment_loop(context, batch, horizon):
     policy_eval.scan_episodes(wm, params, lambda f, k: brightness_policy(f, k)[..., :1], start,
                               2, rng, key, horizon=horizon, action_stats=stats,
                               context_actions=context_actions)
+
+
+def test_scan_takes_device_frames_inside_jit():
+  """uint8 jnp frames, traced inside an outer jit, split over the 8 devices (B = 8) or not."""
+  wm, params = tiny_world_model("irasim.py:S", "sampling.num_steps=2", "model.in_channels=3",
+                                "model.action_dim=2", frame_shape=(8, 8, 3))
+  rng, key = jax.random.key(5), jax.random.key(6)
+
+  def frames(start):
+    return policy_eval.scan_episodes(wm, params, brightness_policy, start, 3, rng, key,
+                                     horizon=3)["frames"]
+
+  for batch in (2, 8):
+    start = jax.random.randint(jax.random.key(batch), (batch, 1, 8, 8, 3), 0, 256, jnp.uint8)
+    np.testing.assert_allclose(jax.jit(frames)(start), frames(np.asarray(start)), atol=1e-3)

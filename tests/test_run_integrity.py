@@ -355,6 +355,26 @@ def test_a_second_trainer_in_the_workdir_is_refused(data_dir, tmp_path):
   assert not (tmp_path / "checkpoints").exists()
 
 
+@pytest.mark.integration
+def test_an_early_failure_removes_the_workdir_it_made_and_keeps_one_that_was_there(data_dir,
+                                                                                    tmp_path):
+  """Issue 49: a run that stops before writing anything (here a mesh the heads do not fit)
+  leaves no empty workdir, nor the parents it made; a workdir that existed stays, with what it
+  held."""
+  config = _config(data_dir, mesh=(2, 1, 4))
+  with pytest.raises(ValueError, match="does not divide"):
+    train(config, str(tmp_path / "runs" / "new"))
+  assert os.listdir(tmp_path) == []
+  for kept in ({}, {"notes.txt": "mine"}):
+    workdir = tmp_path / f"existing{len(kept)}"
+    workdir.mkdir()
+    for name, text in kept.items():
+      (workdir / name).write_text(text)
+    with pytest.raises(ValueError, match="does not divide"):
+      train(config, str(workdir))
+    assert sorted(os.listdir(workdir)) == sorted(kept)
+
+
 # ----------------------------------------------------------------------------- 11
 
 

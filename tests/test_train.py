@@ -59,6 +59,9 @@ def test_bad_batches_fail_before_compilation():
     trainer.step(state, frames[:6], actions[:6])
   with pytest.raises(ValueError, match="mesh \\(3, 1, 1\\) needs 3 devices, 8 are available"):
     make_mesh((3, 1, 1))
+  with pytest.raises(ValueError, match=r"'heads' axis \(model.num_heads\), which the mesh's tensor "
+                     r"axis \(8\) does not divide; choose config.mesh"):
+    ShardedTrainer(WorldModel.from_config(config), config, make_mesh((1, 1, 8)), (8, 8, 3), 4)
 
 
 def test_memory_estimate_moves_with_remat_dtype_batch_and_sharding():

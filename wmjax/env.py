@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
+from numpy.typing import ArrayLike
 
 from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.stats import ActionStats
@@ -96,8 +97,8 @@ class WorldModelEnv:
       return actions
     return self.action_stats.normalize(actions, self.normalization)
 
-  def reset(self, initial_frames, instruction: str | list[str] | None = None,
-            context_actions=None) -> tuple[jax.Array, dict]:
+  def reset(self, initial_frames: ArrayLike, instruction: str | list[str] | None = None,
+            context_actions: ArrayLike | None = None) -> tuple[jax.Array, dict]:
     """Start ``B`` episodes from ``initial_frames [B, c0, H, W, C]`` (``1 <= c0 <= context``;
     uint8 or [-1, 1]) with the raw actions between them, ``context_actions [B, c0-1, A]``, if
     known. Returns (the initial frames in [-1, 1], info)."""
@@ -136,7 +137,7 @@ class WorldModelEnv:
       return NamedSharding(placed.mesh, PartitionSpec())
     return placed or window.sharding
 
-  def step(self, action_chunk) -> tuple[jax.Array, np.ndarray, np.ndarray, np.ndarray, dict]:
+  def step(self, action_chunk: ArrayLike) -> tuple[jax.Array, np.ndarray, np.ndarray, np.ndarray, dict]:
     """Apply ``action_chunk [B, k, A]`` (raw, ``1 <= k <= horizon``): returns (the ``k`` new
     frames ``[B, k, H, W, C]``, reward ``[B]``, terminated ``[B]``, truncated ``[B]``, info)."""
     self._require_reset()

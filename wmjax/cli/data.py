@@ -53,8 +53,10 @@ def inspect(args, extra) -> int:
   (config.data.spec) to train on it with no code."""
   del extra
   from wmjax.data.describe import describe
-  from wmjax.data.sources import open_builder
-  print(describe(open_builder(args.builder_dir)))
+  from wmjax.data.sources import check_shards, open_builder
+  builder = open_builder(args.builder_dir)
+  check_shards(builder, args.builder_dir)
+  print(describe(builder))
   return 0
 
 

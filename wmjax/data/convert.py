@@ -4,7 +4,9 @@ The records are the same serialized examples in another container, so conversion
 each ``*.tfrecord-00000-of-00016`` shard becomes ``*.array_record-00000-of-00016`` with the same
 examples in the same order, and ``dataset_info.json`` is updated to the new file format. The
 output is written to a temporary directory and renamed into place when complete, so a failure
-never leaves a half-converted dataset; an existing output is never overwritten.
+never leaves a half-converted dataset; an existing output is never overwritten. A shard that
+cannot hold the episodes ``dataset_info.json`` counts (missing, empty) stops it before anything
+is written.
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ from typing import Iterator
 
 from etils import epath
 from tensorflow_datasets.core import file_adapters
+
+from wmjax.data.sources import check_shards, open_builder
 
 
 def tfrecord_records(path: epath.PathLike) -> Iterator[bytes]:
@@ -46,6 +50,7 @@ def convert_to_array_record(src: epath.PathLike, dst: epath.PathLike) -> epath.P
   shards = sorted(p for p in src.iterdir() if ".tfrecord-" in p.name)
   if not shards:
     raise ValueError(f"{src} holds no *.tfrecord-* shards")
+  check_shards(open_builder(src), src)
 
   tmp = dst.parent / f".{dst.name}.incomplete"
   if tmp.exists():

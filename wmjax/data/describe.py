@@ -1,7 +1,10 @@
-"""``wmjax data inspect``: a prepared TFDS RLDS dataset's splits and features, and a suggested
+"""``wmjax data inspect``: a prepared TFDS RLDS dataset's splits and features, the keys its spec
+reads with two decoded instructions per split, and a suggested
 :class:`~wmjax.data.oxe.DatasetSpec` to read it with (a guess to check, printed as config)."""
 
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 
@@ -15,20 +18,6 @@ def _kind(feature) -> str:
   return f"{name}{list(shape)} {dtype}"
 
 
-def _is_image(feature) -> bool:
-  return type(feature).__name__ == "Image"
-
-
-def _is_text(feature) -> bool:
-  """A ``Text`` feature or a scalar string ``Tensor`` (how the published Open-X layouts declare
-  their instructions: ``Tensor[] string``)."""
-  if type(feature).__name__ == "Text":
-    return True
-  dtype = getattr(feature, "np_dtype", None)
-  return (dtype is not None and np.dtype(dtype).kind in "OSU"
-          and not tuple(getattr(feature, "shape", ()) or ()))
-
-
 def _size(feature) -> int:
   return int(np.prod(getattr(feature, "shape", ()) or (1,)))
 
@@ -40,12 +29,13 @@ def suggest_spec(name: str, features) -> oxe.DatasetSpec:
   gripper last (a dataset's ``features.json`` does not keep an order)."""
   leaves = dict(sorted(oxe.feature_leaves(features).items()))
   steps = {k: f for k, f in leaves.items() if not k.startswith("episode_metadata/")}
-  cameras = [k for k, f in steps.items() if _is_image(f)]
+  cameras = [k for k, f in steps.items() if oxe.is_image_feature(f)]
   if not cameras:
     raise ValueError(f"{name}: no image feature among the steps' keys {sorted(steps)}")
   preferred = [k for k in cameras if k.split("/")[-1] in ("image", "image_0", "rgb")]
   camera = (preferred or cameras)[0]
-  texts = [k for k, f in steps.items() if _is_text(f) and ("instruction" in k or "language" in k)]
+  texts = [k for k, f in steps.items()
+           if oxe.is_text_feature(f) and ("instruction" in k or "language" in k)]
   codes = [k for k, f in steps.items()
            if "instruction" in k and np.dtype(f.np_dtype).kind in "iu" and _size(f) > 1]
   instruction, encoding = ((texts[0], "text") if texts else (codes[0], "utf8_codes") if codes
@@ -74,6 +64,39 @@ def builtin_spec(name: str, features) -> oxe.DatasetSpec | None:
   return None
 
 
+def _keys_read(spec: oxe.DatasetSpec) -> str:
+  """The step keys a resolved spec reads, by role."""
+  encoding = f" ({spec.instruction_encoding})" if spec.instruction_encoding != "auto" else ""
+  instruction = spec.instruction_key + encoding if spec.instruction_key else "none"
+  extra = f"; extra {', '.join(spec.extra_keys)}" if spec.extra_keys else ""
+  return (f"reads: image {' + '.join(spec.image_keys)}; instruction {instruction}; actions "
+          f"{' + '.join(spec.action_keys)}{extra}")
+
+
+def _first_instructions(builder, spec: oxe.DatasetSpec, split: str, count: int = 2) -> list[str]:
+  """The decoded instructions of a split's first ``count`` episodes (TFRecord: of those with the
+  spec's camera)."""
+  from wmjax.data.sources import ArrayRecordEpisodes, tfrecord_episodes
+  if builder.info.file_format.value == "array_record":
+    episodes = ArrayRecordEpisodes(builder.data_dir, split, spec)
+    return [episodes.episode(i, 0, 1).instruction for i in range(min(count, len(episodes)))]
+  return [e.instruction for e in itertools.islice(
+      tfrecord_episodes(builder.data_dir, split, spec), count)]
+
+
+def _instruction_lines(builder, spec: oxe.DatasetSpec) -> list[str]:
+  """Two decoded instructions per split (what the instruction key reads)."""
+  if not spec.instruction_key:
+    return []
+  splits = [s for s, info in builder.info.splits.items() if info.num_examples]
+  try:
+    return ["instructions (first two episodes):"] + [
+        f"  {split}: " + ", ".join(map(repr, _first_instructions(builder, spec, split)))
+        for split in splits]
+  except ImportError as e:  # TFRecord without TensorFlow
+    return [f"instructions: not read ({e})"]
+
+
 def describe(builder) -> str:
   """The text ``wmjax data inspect`` prints for a TFDS builder."""
   info = builder.info
@@ -83,9 +106,12 @@ def describe(builder) -> str:
   leaves = oxe.feature_leaves(info.features)
   width = max(len(k) for k in leaves)
   lines += [f"  {key:<{width}}  {_kind(feature)}" for key, feature in sorted(leaves.items())]
-  cameras = sorted(k for k, f in leaves.items() if _is_image(f))
+  cameras = sorted(k for k, f in leaves.items() if oxe.is_image_feature(f))
   spec = builtin_spec(info.name, info.features)
-  if spec is not None:
+  builtin = spec is not None
+  spec = spec or suggest_spec(info.name, info.features)
+  lines += ["", _keys_read(spec)] + _instruction_lines(builder, spec)
+  if builtin:
     others = [c for c in cameras if c not in spec.image_keys]
     lines += ["", f"this is the built-in {spec.name!r} spec ({spec.action_dim}-dim actions"
               + (f", gripper dimension {spec.gripper_dim}" if spec.gripper_dim is not None else "")
@@ -96,7 +122,6 @@ def describe(builder) -> str:
               f"--config.data.builder_dir={builder.data_dir} --config.data.dataset={spec.name} "
               f"--config.model.action_dim={spec.action_dim}"]
     return "\n".join(lines)
-  spec = suggest_spec(info.name, info.features)
   lines += ["", "suggested spec (check it; config.data.spec of configs/rlds.py, or overrides):"]
   for key, value in spec.to_dict().items():
     if key in ("name", "layout"):

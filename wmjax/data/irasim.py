@@ -114,6 +114,16 @@ def _array(annotation: dict, key: str, path: str, ndim: int) -> np.ndarray:
   return values
 
 
+def annotation_splits(src: str) -> list[str]:
+  """The splits an IRASim dataset directory annotates (``annotation/<split>/``)."""
+  return [s for s in SPLITS if os.path.isdir(os.path.join(src, "annotation", s))]
+
+
+def recognises(src: str) -> bool:
+  """Whether ``src`` is an IRASim dataset directory."""
+  return bool(annotation_splits(src))
+
+
 class IRASimDataset:
   """The episodes of one IRASim dataset directory (see the module doc), parsed and checked before
   anything is written."""
@@ -128,7 +138,7 @@ class IRASimDataset:
       raise ValueError(f"{self.src} is not one of IRASim's dataset directories "
                        f"{sorted(DATASETS)} by name; {hint}")
     self.kind, self.camera = DATASETS[self.dataset], int(camera)
-    found = [s for s in SPLITS if os.path.isdir(os.path.join(self.src, "annotation", s))]
+    found = annotation_splits(self.src)
     if not found:
       raise ValueError(f"{self.src} is not an IRASim dataset directory: no annotation/<split>/ "
                        f"for any of the splits {list(SPLITS)}")

@@ -43,15 +43,23 @@ def camera_name(key: str) -> str:
   return "image_camera" if name == "image" else name
 
 
+def _info_path(src: str) -> str:
+  return os.path.join(src, "meta", "info.json")
+
+
+def recognises(src: str) -> bool:
+  """Whether ``src`` holds a LeRobot dataset (it has ``meta/info.json``)."""
+  return os.path.isfile(_info_path(src))
+
+
 class LeRobotDataset:
   """The parts of a local LeRobot dataset the importer needs (see the module doc)."""
 
   def __init__(self, src: str, action_key: str = "action"):
     self.src, self.action_key = os.fspath(src), action_key
-    path = os.path.join(self.src, "meta", "info.json")
-    if not os.path.isfile(path):
+    if not recognises(self.src):
       raise ValueError(f"{src} is not a LeRobot dataset: no meta/info.json")
-    with open(path) as f:
+    with open(_info_path(self.src)) as f:
       self.info = json.load(f)
     version = str(self.info.get("codebase_version", ""))
     self.version = version.split(".")[0]

@@ -9,9 +9,11 @@ Built-in specs (:data:`SPECS`): the Open-X datasets in the IRASim action spaces 
 7-dim ``[dx, dy, dz, droll, dpitch, dyaw, gripper]``, Language-Table 2-dim ``[dx, dy]``; the
 published actions are used as they are — and the datasets wmjax generates (gridworld, Push-T,
 registered by their modules). A dataset may have several published layouts; :func:`resolve_spec`
-picks the first whose keys the builder's ``info.features`` holds, or fails listing the keys it
-expected and found. Any other RLDS dataset is read by a spec given in ``config.data.spec`` (its
-schema is :class:`DatasetSpec`, see :func:`spec_config`); ``wmjax data inspect`` suggests one.
+picks the first whose keys the builder's ``info.features`` holds, or fails naming, for the
+closest layout, each spec field whose keys the features lack, what they hold instead and the
+config key that chooses it. Any other RLDS dataset is read by a spec given in
+``config.data.spec`` (its schema is :class:`DatasetSpec`, see :func:`spec_config`); ``wmjax data
+inspect`` suggests one.
 """
 
 from __future__ import annotations
@@ -134,12 +136,6 @@ class DatasetSpec:
       problems.append(f"resolution must be (H, W), got {self.resolution}")
     if problems:
       raise ValueError(f"dataset spec {self.name!r}: " + "; ".join(problems))
-
-  @property
-  def required_keys(self) -> tuple[str, ...]:
-    """Step keys the dataset must have (with fallbacks, the first image alternative)."""
-    instruction = (self.instruction_key,) if self.instruction_key else ()
-    return self.image_keys + instruction + self.action_keys + self.extra_keys
 
   def actions(self, steps: Mapping) -> np.ndarray:
     """Assembled actions ``[L, action_dim]`` float32 of batched steps (before subsampling)."""
@@ -296,6 +292,57 @@ def _pick_image(alternatives: str, found: Mapping[str, Any]) -> str | None:
   return next((key for key in alternatives.split("|") if key in found), None)
 
 
+def is_image_feature(feature) -> bool:
+  return type(feature).__name__ == "Image"
+
+
+def is_text_feature(feature) -> bool:
+  """A ``Text`` feature or a scalar string ``Tensor`` (how the published Open-X layouts declare
+  their instructions: ``Tensor[] string``)."""
+  if type(feature).__name__ == "Text":
+    return True
+  dtype = getattr(feature, "np_dtype", None)
+  return (dtype is not None and np.dtype(dtype).kind in "OSU"
+          and not tuple(getattr(feature, "shape", ()) or ()))
+
+
+def missing_keys(spec: DatasetSpec, steps: Mapping[str, Any]) -> dict[str, tuple[str, ...]]:
+  """Field of ``spec`` -> the keys it names that the step features ``steps`` lack (an image
+  ``'a|b'`` when neither is there); empty when the spec reads these steps."""
+  instruction = (spec.instruction_key,) if spec.instruction_key else ()
+  missing = {"image_keys": tuple(a for a in spec.image_keys if _pick_image(a, steps) is None),
+             "instruction_key": tuple(k for k in instruction if k not in steps),
+             "action_keys": tuple(k for k in spec.action_keys if k not in steps),
+             "extra_keys": tuple(k for k in spec.extra_keys if k not in steps)}
+  return {field: keys for field, keys in missing.items() if keys}
+
+
+def _is_instruction(key: str, feature) -> bool:
+  """Text, or an integer array of UTF-8 codes named an instruction (Language-Table's)."""
+  return is_text_feature(feature) or (
+      "instruction" in key and np.dtype(feature.np_dtype).kind in "iu")
+
+
+# Per key field of a spec: what the dataset offers instead (a predicate on (key, feature)) and
+# how a config chooses it.
+_KEY_FIELDS = {
+    "image_keys": ("cameras", lambda key, f: is_image_feature(f), "config.data.image_key"),
+    "instruction_key": ("instructions", _is_instruction,
+                        "config.data.spec.instruction_key ('' for none)"),
+    "action_keys": ("actions", lambda key, f: key == "action" or key.startswith("action/"),
+                    "config.data.spec.action_keys"),
+    "extra_keys": ("keys", lambda key, f: True, "config.data.spec.extra_keys"),
+}
+
+
+def _missing_field(field: str, keys: tuple[str, ...], steps: Mapping[str, Any]) -> str:
+  """One field's part of resolve_spec's error: what it named, what the steps have instead."""
+  kind, offered, how = _KEY_FIELDS[field]
+  there = sorted(k for k, f in steps.items() if offered(k, f))
+  named = repr(keys[0]) if field == "instruction_key" else repr(list(keys))
+  return f"spec.{field} {named} not among the step keys ({kind} there: {there}); set {how}"
+
+
 def resolve_spec(candidates: str | DatasetSpec | Sequence[DatasetSpec], features) -> DatasetSpec:
   """The first candidate (a dataset name: its built-in layouts) whose keys ``features`` (a
   builder's ``info.features``) holds, with image fallbacks, camera flags, ``action_dim`` and
@@ -310,10 +357,9 @@ def resolve_spec(candidates: str | DatasetSpec | Sequence[DatasetSpec], features
   leaves = feature_leaves(features)
   steps = {k: v for k, v in leaves.items() if k.split("/")[0] != "episode_metadata"}
   for spec in candidates:
-    images = tuple(_pick_image(alternatives, steps) for alternatives in spec.image_keys)
-    others = set(spec.required_keys) - set(spec.image_keys)
-    if None in images or not others <= set(steps):
+    if missing_keys(spec, steps):
       continue
+    images = tuple(_pick_image(alternatives, steps) for alternatives in spec.image_keys)
     flags = spec.image_flags or tuple(
         f"episode_metadata/has_{key.split('/')[-1]}" for key in images
         if f"episode_metadata/has_{key.split('/')[-1]}" in leaves)
@@ -335,6 +381,9 @@ def resolve_spec(candidates: str | DatasetSpec | Sequence[DatasetSpec], features
       raise ValueError(f"{spec.name}: gripper_dim {spec.gripper_dim} is outside the "
                        f"{spec.action_dim}-dim actions")
     return spec
-  expected = "; ".join(f"{s.layout}: {sorted(s.required_keys)}" for s in candidates)
-  raise ValueError(f"{candidates[0].name}: the dataset's features match no known layout. Expected "
-                   f"the step keys of one of [{expected}] ('a|b': a or b); found {sorted(steps)}")
+  closest = min(candidates, key=lambda s: sum(map(len, missing_keys(s, steps).values())))
+  layouts = (f" (closest of the layouts {[s.layout for s in candidates]}: {closest.layout!r})"
+             if len(candidates) > 1 else "")
+  raise ValueError(f"{closest.name}: the dataset's features match no known layout{layouts}: "
+                   + "; ".join(_missing_field(field, keys, steps)
+                               for field, keys in missing_keys(closest, steps).items()))

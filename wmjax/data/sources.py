@@ -35,12 +35,61 @@ log = logging.getLogger(__name__)
 
 
 def open_builder(builder_dir: str):
-  """``tfds.builder_from_directory`` with a clear error when the directory holds no dataset."""
+  """``tfds.builder_from_directory`` with a clear error when the directory holds no dataset:
+  the ``wmjax data import`` command when it holds a raw LeRobot, IRASim or WPE dataset."""
   try:
     return tfds.builder_from_directory(os.fspath(builder_dir))
   except Exception as e:  # tfds raises several types for a missing / malformed directory
-    raise ValueError(f"no TFDS dataset at {builder_dir!r} (expected dataset_info.json and "
-                     f"features.json of a prepared dataset): {e}") from e
+    hint = _import_hint(os.fspath(builder_dir))
+    raise ValueError(f"no TFDS dataset at {builder_dir!r} " + (hint or (
+        f"(expected dataset_info.json and features.json of a prepared dataset): {e}"))) from e
+
+
+def _import_hint(path: str) -> str | None:
+  """How to import the raw dataset at ``path``, or None when it holds none that wmjax imports."""
+  from wmjax.data import irasim, lerobot, wpe
+  for command, name, module in (("lerobot", "LeRobot", lerobot), ("irasim", "IRASim", irasim),
+                                ("wpe", "WPE", wpe)):
+    if module.recognises(path):
+      return (f"but a raw {name} dataset: import it first with `wmjax data import {command} "
+              f"{path} OUT_DIR`, then use OUT_DIR")
+  return None
+
+
+def check_shards(builder, builder_dir: str, split: str | None = None) -> None:
+  """ValueError naming the first shard of ``split`` (default: every split) that does not hold
+  the episodes ``dataset_info.json`` counts in it: missing, empty, or (ArrayRecord, whose footer
+  says how many records it has) unreadable or holding another number. TFRecord shards are
+  checked by size only (counting their records means reading them whole); shards in a bucket
+  (``gs://``) are not checked."""
+  if "://" in os.fspath(builder_dir):
+    return
+  splits = [builder.info.splits[split]] if split else builder.info.splits.values()
+  for info in splits:
+    for path, expected in zip(info.filepaths, info.shard_lengths):
+      problem = _shard_problem(os.fspath(path), builder.info.file_format.value, expected)
+      if problem:
+        raise ValueError(f"{path} {problem}, but dataset_info.json counts {expected} episodes "
+                         f"in it: the dataset is damaged; copy, convert or import it again")
+
+
+def _shard_problem(path: str, file_format: str, expected: int) -> str | None:
+  """What keeps a shard from holding its ``expected`` episodes, or None."""
+  if not expected:
+    return None
+  if not os.path.exists(path):
+    return "is missing"
+  if not os.path.getsize(path):
+    return "is empty (0 bytes)"
+  if file_format != "array_record":
+    return None
+  from array_record.python import array_record_module
+  reader = array_record_module.ArrayRecordReader(path, "readahead_buffer_size:0,max_parallelism:0")
+  if not reader.ok():  # nothing to close (closing it raises)
+    return "is not a readable ArrayRecord file (truncated or corrupted)"
+  count = reader.num_records()
+  reader.close()
+  return None if count == expected else f"holds {count} episodes"
 
 
 SpecArg = Union[str, oxe.DatasetSpec, Sequence[oxe.DatasetSpec], None]
@@ -156,6 +205,7 @@ class ArrayRecordEpisodes:
       raise ValueError(f"{builder_dir} is stored as {builder.info.file_format.value}; random access "
                        f"needs ArrayRecord: run `wmjax data convert {builder_dir} OUT_DIR`")
     self._tfds_split = _check_split(builder, builder_dir, split)
+    check_shards(builder, builder_dir, split.split("[")[0])
     self.builder_dir, self.split = os.fspath(builder_dir), split
     self.spec = resolve(builder, spec)
     self._length = builder.info.splits[self._tfds_split].num_examples
@@ -234,6 +284,7 @@ def tfrecord_episodes(builder_dir: str, split: str, spec: SpecArg = None,
     raise ValueError(f"{builder_dir} is stored as {builder.info.file_format.value}; tf.data reads "
                      f"TFRecord only: read it with ArrayRecordEpisodes (or read_episodes)")
   tfds_split = _check_split(builder, builder_dir, split)
+  check_shards(builder, builder_dir, split.split("[")[0])
   try:
     import tensorflow as tf
   except ImportError as e:

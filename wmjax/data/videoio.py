@@ -87,6 +87,14 @@ class VideoStream:
     self._position = start + count
     return np.stack(frames)
 
+  def count_rest(self) -> int:
+    """How many frames follow the ones read so far (decoding them to the end of the file)."""
+    if self._frames is None:
+      self._open()
+    rest = sum(1 for _ in self._frames)
+    self._position += rest
+    return rest
+
   def close(self) -> None:
     if self._frames is not None:
       self._frames.close()

@@ -14,8 +14,9 @@ in name order and, within one, by file name; ``dataset_info.json`` records how m
 gave (``subsets``), so ``train[:N]`` can pick the first. DIR may also be one subset's directory
 (holding ``train/`` or ``test/``). As WPE does, an mp4 without its npz or with an npz that does
 not load is skipped (counted in the log), and so is an episode of no steps; actions of another
-width than the first episode's, or a video shorter than its actions, are errors naming the file
-(later frames are left out).
+width than the first episode's, or a video shorter than its actions, are errors naming the file;
+a video longer than its actions is imported to their length with a warning naming it and
+counting the frames left out.
 """
 
 from __future__ import annotations
@@ -35,6 +36,13 @@ from wmjax.data.writer import (check_out, first_frame_shape, step_features, vide
 log = logging.getLogger(__name__)
 
 SPLITS = ("train", "test")
+
+
+def recognises(src: str) -> bool:
+  """Whether ``src`` holds WPE episodes: ``<split>/*.npz`` (one subset's directory) or
+  ``<subset>/<split>/*.npz``."""
+  return any(glob.glob(os.path.join(src, *subset, split, "*.npz"))
+             for subset in ((), ("*",)) for split in SPLITS)
 
 
 def _load_actions(path: str) -> np.ndarray | None:

@@ -12,6 +12,7 @@ gives them (shuffling disabled, so ``train[90%:]`` is the last episodes).
 from __future__ import annotations
 
 import io
+import logging
 import os
 import shutil
 from typing import Any, Callable, Iterable, Mapping
@@ -20,6 +21,8 @@ import numpy as np
 from PIL import Image
 
 from wmjax.data.videoio import VideoStream, iter_frames
+
+log = logging.getLogger(__name__)
 
 # One split: a callable giving (key, {"steps": [...], "episode_metadata": {...}}) pairs.
 SplitExamples = Callable[[], Iterable[tuple[Any, dict]]]
@@ -63,16 +66,21 @@ def first_frame_shape(video: str) -> tuple[int, int]:
 def video_steps(video: str, actions: np.ndarray, instruction: str, shape: tuple[int, int],
                 vectors: Mapping[str, np.ndarray] | None = None) -> list[dict[str, Any]]:
   """:func:`episode_steps` of a one-camera episode whose frames are ``video``'s first
-  ``len(actions)`` (later ones left out) and must be of ``shape`` ``(H, W)``; a shorter video, or
-  another size, is an error naming the file."""
+  ``len(actions)`` and must be of ``shape`` ``(H, W)``; a shorter video, or another size, is an
+  error naming the file, a longer one a warning naming it with the frames left out."""
   stream = VideoStream(video)
   try:
     frames = stream.read(0, len(actions))
+    left_out = stream.count_rest()
   finally:
     stream.close()
   if frames.shape[1:3] != tuple(shape):
     raise ValueError(f"{video}: frames of {frames.shape[1:3]}, but the dataset's first video has "
                      f"{tuple(shape)}; every video must share one size")
+  if left_out:
+    log.warning("%s has %d frames but its episode %d actions (one per frame): imported %d steps, "
+                "%d frames left out", video, len(actions) + left_out, len(actions), len(actions),
+                left_out)
   return episode_steps({"image": frames}, actions, instruction, vectors)
 
 

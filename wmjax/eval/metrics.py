@@ -1,6 +1,9 @@
 """Video metrics, one value per frame, over frames ``[..., H, W, C]`` (any leading axes, e.g.
-``[B, T]``). Frames are uint8 or floats in [-1, 1] (the library's convention); pixel metrics see
-them in [0, 1]. Callers skip the context frames, which are copies of the ground truth.
+``[B, T]``). Frames are uint8 or floats in [-1, 1] (the library's convention,
+:mod:`wmjax.frames`), told apart by their dtype, never by their values; other dtypes are refused.
+Pixel metrics see them in [0, 1]; pass [0, 1] float images as ``2 * x - 1``. Every metric is a
+pure function of its inputs: it runs under ``jit``, ``vmap`` and ``grad`` (floats). Callers skip
+the context frames, which are copies of the ground truth.
 
 - :func:`psnr`: identical frames have infinite PSNR; it is capped at ``max_db`` (100 dB by
   default) so that means over frames stay finite. Equal to scikit-image's otherwise.
@@ -10,10 +13,6 @@ them in [0, 1]. Callers skip the context frames, which are copies of the ground 
   uses. Colour frames average the per-channel SSIM, as scikit-image with ``channel_axis=-1``.
 - :func:`grayscale`: BT.601 luma in uint8 exactly as ``cv2.cvtColor(..., COLOR_RGB2GRAY)``;
   IRASim computes PSNR and SSIM on these.
-
-The pixel metrics warn when both float inputs lie in [0, 1] (no value below 0): such frames are
-most likely [0, 1] images, which read as [-1, 1] give a PSNR about 6 dB too high. Pass uint8
-frames, or ``2 x - 1``.
 - :func:`mse` on [0, 1] pixels, :func:`latent_l2` on raw (latent) values, :func:`masked_mse` over
   user masks (WPE's arm / object MSE); :func:`frame_metrics` computes them all per frame, with a
   task's own (:mod:`wmjax.registry`).
@@ -46,6 +45,7 @@ def grayscale(frames) -> jax.Array:
   it is."""
   if np.shape(frames)[-1:] != (3,):
     raise ValueError(f"grayscale needs RGB frames [..., H, W, 3], got {np.shape(frames)}")
+  _check_dtype(frames)
   return _luma(jnp.asarray(frames))
 
 
@@ -68,13 +68,17 @@ def _check_pair(pred, target) -> None:
     raise ValueError(f"frames must be [..., H, W, C], got shape {np.shape(pred)}")
 
 
-def _warn_unit_floats(*frames) -> None:
-  """Warn when every float input lies in [0, 1]: the pixel metrics read floats as [-1, 1]."""
-  if all(jnp.issubdtype(jnp.result_type(f), jnp.floating) for f in frames) and all(
-      float(jnp.min(f)) >= 0.0 and float(jnp.max(f)) <= 1.0 for f in frames):
-    warnings.warn("the frames are floats in [0, 1] (none below 0), but the metrics read float "
-                  "frames as [-1, 1]: pass uint8 frames or 2 * frames - 1 (the PSNR of [0, 1] "
-                  "frames read as [-1, 1] is about 6 dB too high)", stacklevel=3)
+def _check_dtype(frames) -> None:
+  """Pixel frames are uint8 or floats: their dtype says their range."""
+  dtype = jnp.result_type(frames)
+  if dtype != jnp.uint8 and not jnp.issubdtype(dtype, jnp.floating):
+    raise ValueError(f"frames must be uint8 (0..255) or floats in [-1, 1], got {dtype}")
+
+
+def _check_frames(pred, target) -> None:
+  _check_pair(pred, target)
+  _check_dtype(pred)
+  _check_dtype(target)
 
 
 def latent_l2(pred, target) -> jax.Array:
@@ -89,9 +93,8 @@ def _mean_square(a: jax.Array, b: jax.Array) -> jax.Array:
 
 
 def mse(pred, target) -> jax.Array:
-  """Pixel MSE per frame on [0, 1] images."""
-  _check_pair(pred, target)
-  _warn_unit_floats(pred, target)
+  """Pixel MSE per frame of uint8 or [-1, 1] frames, measured on their [0, 1] pixels."""
+  _check_frames(pred, target)
   return _pixel_mse(jnp.asarray(pred), jnp.asarray(target))
 
 
@@ -103,8 +106,7 @@ def _pixel_mse(pred: jax.Array, target: jax.Array) -> jax.Array:
 def masked_mse(pred, target, mask) -> jax.Array:
   """Pixel MSE per frame over the pixels where ``mask [..., H, W]`` is true (WPE eq. 3); NaN for
   a frame whose mask is empty (aggregate with ``nanmean``)."""
-  _check_pair(pred, target)
-  _warn_unit_floats(pred, target)
+  _check_frames(pred, target)
   if np.shape(mask) != np.shape(pred)[:-1]:
     raise ValueError(f"mask must be [..., H, W] = {np.shape(pred)[:-1]}, got {np.shape(mask)}")
   return _masked_mse(jnp.asarray(pred), jnp.asarray(target), jnp.asarray(mask, bool))
@@ -119,9 +121,9 @@ def _masked_mse(pred: jax.Array, target: jax.Array, mask: jax.Array) -> jax.Arra
 
 
 def psnr(pred, target, max_db: float = 100.0) -> jax.Array:
-  """PSNR (dB) per frame on [0, 1] images; identical frames give ``max_db`` instead of +inf."""
-  _check_pair(pred, target)
-  _warn_unit_floats(pred, target)
+  """PSNR (dB) per frame of uint8 or [-1, 1] frames, measured on their [0, 1] pixels (peak 1);
+  identical frames give ``max_db`` instead of +inf."""
+  _check_frames(pred, target)
   return _psnr(jnp.asarray(pred), jnp.asarray(target), max_db)
 
 
@@ -160,8 +162,7 @@ def _ssim(pred: jax.Array, target: jax.Array, window: str) -> jax.Array:
 
 def ssim(pred, target, window: str = "gaussian") -> jax.Array:
   """SSIM per frame (see the module doc for ``window``); frames at least 11 (7) pixels a side."""
-  _check_pair(pred, target)
-  _warn_unit_floats(pred, target)
+  _check_frames(pred, target)
   if window not in ("gaussian", "uniform"):
     raise ValueError(f"window must be 'gaussian' or 'uniform', got {window!r}")
   size = 11 if window == "gaussian" else _UNIFORM_WINDOW

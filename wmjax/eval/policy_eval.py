@@ -28,6 +28,7 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy import stats as scipy_stats
 
 from wmjax.codecs import Codec, PixelCodec
@@ -87,7 +88,7 @@ def scan_episodes(world_model: WorldModel, params: Any, policy: Policy, initial_
   ``frames [B, c+steps, H, W, 3]`` and raw ``actions [B, steps, A]``. The batch is split over
   the local devices when it divides evenly between them."""
   codec = codec or PixelCodec()
-  frames = to_model(initial_frames)
+  frames = to_model(initial_frames, xp=jnp)
   if frames.ndim != 5:
     raise ValueError(f"initial_frames must be [B, c, H, W, C], got {tuple(frames.shape)}")
   b, c = frames.shape[:2]
@@ -220,7 +221,7 @@ def episode_returns(frames, reward_fn: RewardFn, instruction=None, *, start: int
   return np.asarray(reward_fn(frames[:, start:], instruction), np.float64)
 
 
-def agreement(true_values, estimated_values) -> dict[str, float]:
+def agreement(true_values: ArrayLike, estimated_values: ArrayLike) -> dict[str, float]:
   """How well estimated policy values ``[P]`` match true ones ``[P]`` (``P >= 3``).
 
   ``pearson`` / ``spearman`` / ``kendall``: correlations (NaN when either side is constant);

@@ -7,7 +7,8 @@ the gridworld) with a ground truth | prediction GIF, and async checkpoints of st
 action statistics (the data position is the step).
 
 A run is never lost or silently changed:
-- one trainer per workdir (``train.lock``, see :mod:`wmjax.train.workdir`);
+- one trainer per workdir (``train.lock``, see :mod:`wmjax.train.workdir`); a workdir the run
+  created is removed again if it stops before writing anything (a config or data error);
 - resume from the newest checkpoint that reads back (a damaged newer one is moved aside with a
   warning), only with the config it was trained with up to the changes :mod:`wmjax.train.resume`
   accepts; ``config.json`` is written after the restore, ``metrics.jsonl`` cut back to its step;
@@ -56,8 +57,8 @@ from wmjax.train.checkpoint import Checkpointer, shapes_by_path
 from wmjax.train.data import build_data, eval_windows
 from wmjax.train.resume import check_resume
 from wmjax.train.step import ShardedTrainer
-from wmjax.train.workdir import (METRICS_LOG, WorkdirLock, record_config_changes,
-                                 truncate_metrics_log)
+from wmjax.train.workdir import (METRICS_LOG, WorkdirLock, make_workdir, record_config_changes,
+                                 remove_empty_dirs, truncate_metrics_log)
 
 
 LIBRARY_LOG = "train.log"  # orbax's and asyncio's warnings and errors during training
@@ -250,13 +251,24 @@ def train(config: ml_collections.ConfigDict, workdir: str, *,
   a checkpoint (if the state is finite) and returns ``{'step', 'stopped', 'signal'}`` as metrics.
   """
   workdir = os.path.abspath(os.path.expanduser(workdir))
-  os.makedirs(workdir, exist_ok=True)
+  created = make_workdir(workdir)
+  try:
+    return _train_locked(config, workdir, tuple(allow_config_change))
+  except BaseException:
+    if created is not None:  # an early failure (config, data) leaves no empty workdir behind
+      remove_empty_dirs(created)
+    raise
+
+
+def _train_locked(config: ml_collections.ConfigDict, workdir: str,
+                  allow: tuple[str, ...]) -> tuple[Any, dict]:
+  """:func:`_train` holding the workdir's lock, the libraries' logs sent to its log file."""
   lock = WorkdirLock(workdir) if jax.process_index() == 0 else None
   if lock is not None:
     lock.acquire()
   try:
     with _library_logs_to(os.path.join(workdir, LIBRARY_LOG)):
-      return _train(config, workdir, tuple(allow_config_change))
+      return _train(config, workdir, allow)
   finally:
     if lock is not None:
       lock.release()
@@ -284,10 +296,6 @@ def _set_up(config: ml_collections.ConfigDict, is_chief: bool) -> _Setup:
   mesh = parallel.make_mesh(config.mesh)
   parallel.check_batch_divisible(config.batch_size, mesh, processes=jax.process_count(),
                                  what="global batch_size")
-  world_model = WorldModel.from_config(config)
-  frame_shape, frames = tuple(config.frame_shape), config.data.frames
-  parallel.check_shardable(
-      jax.eval_shape(lambda: world_model.init(jax.random.key(0), frame_shape, frames)), mesh)
   say = functools.partial(print, flush=True) if is_chief else lambda *_: None
   say(f"hint: analytic {memory.describe(memory.estimate(config, jax.device_count()))}")
   config, trainer, _ = fit.fit_for_training(config, log=say)

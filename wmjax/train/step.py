@@ -117,6 +117,7 @@ class ShardedTrainer:
                                 state_rng)
 
     abstract = jax.eval_shape(init, jax.random.key(0))
+    parallel.check_shardable(abstract, mesh)
     self.state_shardings = parallel.logical_shardings(abstract, mesh)
     self.abstract_state = abstract_with_shardings(nn.unbox(abstract), self.state_shardings)
     self.batch_sharding = parallel.batch_sharding(mesh)

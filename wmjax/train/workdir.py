@@ -1,6 +1,6 @@
 """The files of a training workdir that are not checkpoints: the lock that keeps a second trainer
 out, the metrics log cut back to the step a run resumes from, and the record of config changes
-accepted on resume.
+accepted on resume; a workdir a run created and left empty is removed.
 
 The lock is ``WORKDIR/train.lock``, held with ``flock`` by the process that trains and holding its
 pid, host and start time. The kernel drops the lock when that process dies (even by ``kill -9``),
@@ -26,6 +26,26 @@ CONFIG_CHANGES = "config_changes.jsonl"
 
 class WorkdirLockedError(RunError):
   """Another process is training in the same workdir."""
+
+
+def make_workdir(workdir: str) -> str | None:
+  """Create ``workdir`` and its missing parents; the outermost directory this created, or None
+  when ``workdir`` existed."""
+  created, path = None, os.path.abspath(workdir)
+  while not os.path.exists(path):
+    created, path = path, os.path.dirname(path)
+  os.makedirs(workdir, exist_ok=True)
+  return created
+
+
+def remove_empty_dirs(top: str) -> None:
+  """Remove the empty directories under ``top``, then ``top`` itself if that left it empty: a
+  run that stopped before writing anything leaves no trace. Files are never removed."""
+  for directory, _, _ in os.walk(top, topdown=False):
+    try:
+      os.rmdir(directory)
+    except OSError:  # not empty
+      pass
 
 
 def _process_start(pid: int) -> str | None:
