@@ -231,7 +231,8 @@ SPECS["bridge_dataset"] = tuple(dataclasses.replace(s, name="bridge_dataset")
 
 
 def register(spec: DatasetSpec) -> None:
-  """Add a layout for ``spec.name`` (the synthetic datasets register themselves)."""
+  """Add a layout for ``spec.name`` (the tasks' generated datasets register theirs when
+  imported)."""
   SPECS[spec.name] = tuple(s for s in SPECS.get(spec.name, ()) if s.layout != spec.layout) + (spec,)
 
 
@@ -260,7 +261,8 @@ def specs_from_config(data: Mapping[str, Any]) -> tuple[DatasetSpec, ...]:
   else:
     raise ValueError(f"unknown dataset {name!r} and no config.data.spec: known datasets are "
                      f"{sorted(SPECS)}; for another RLDS dataset set config.data.spec (run "
-                     f"`wmjax data inspect BUILDER_DIR` for a suggestion)")
+                     f"`wmjax data inspect BUILDER_DIR` for a suggestion); a dataset a task "
+                     f"generates is known once its task is imported (config.task names it)")
   overrides = {}
   for key, field in CONFIG_OVERRIDES.items():
     value = data.get(key)
