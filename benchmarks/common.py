@@ -28,16 +28,16 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
 def add_kernel_arguments(parser: argparse.ArgumentParser) -> None:
   """``--mlp_blocks``: the tiles of the fused MLP kernels (``model.mlp_kernel=pallas``)."""
   parser.add_argument("--mlp_blocks", default=None, metavar="R,C,D,WARPS,STAGES",
-                      help="tiles of the fused MLP kernels (model.mlp_kernel=pallas); default: "
-                           "wmjax.nn.kernels.mlp.DEFAULT_BLOCKS")
+                      help="tiles of the fused MLP kernels (model.mlp_kernel=pallas), the "
+                           "config's model.mlp_blocks; default: wmjax.nn.kernels.mlp.Blocks()")
 
 
-def apply_kernel_arguments(args: argparse.Namespace) -> dict:
-  """Set the fused MLP kernels' tiles from ``args.mlp_blocks`` (before tracing); returns them."""
+def kernel_overrides(args: argparse.Namespace) -> tuple[list[str], dict]:
+  """``--mlp_blocks`` as the config override of the fused MLP kernels' tiles
+  (``model.mlp_blocks``), and the tiles the model gets (the defaults without it)."""
   from wmjax.nn.kernels import mlp
-  if args.mlp_blocks:
-    mlp.DEFAULT_BLOCKS = mlp.Blocks(*(int(v) for v in args.mlp_blocks.split(",")))
-  return dataclasses.asdict(mlp.DEFAULT_BLOCKS)
+  tiles = tuple(int(v) for v in args.mlp_blocks.split(",")) if args.mlp_blocks else ()
+  return ([f"model.mlp_blocks={tiles}"] if tiles else []), dataclasses.asdict(mlp.Blocks(*tiles))
 
 
 def parse_args(parser: argparse.ArgumentParser) -> argparse.Namespace:

@@ -22,7 +22,7 @@ import platform
 import jax
 import jax.numpy as jnp
 
-from common import (add_config_arguments, add_kernel_arguments, apply_kernel_arguments,
+from common import (add_config_arguments, add_kernel_arguments, kernel_overrides,
                     median_seconds, parse_args, peak_memory, write_result)
 from profile_ops import format_table, top_ops
 from wmjax.config import load_config
@@ -87,10 +87,10 @@ def main():
                       help="trace one more rollout per batch into DIR; device time by op")
   add_kernel_arguments(parser)
   args = parse_args(parser)
-  mlp_blocks = apply_kernel_arguments(args)
+  kernel, mlp_blocks = kernel_overrides(args)
   batches = sorted(set(args.batch or [1]))
-  runs = [benchmark(args.config, args.overrides, b, args.frames, args.repeats, args.profile)
-          for b in batches]
+  runs = [benchmark(args.config, args.overrides + kernel, b, args.frames, args.repeats,
+                    args.profile) for b in batches]
   best = max(runs, key=lambda r: r["rollout_frames_per_s"])
   result = dict(best, batches=runs) if len(runs) > 1 else best
   result["mlp_blocks"] = mlp_blocks

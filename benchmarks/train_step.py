@@ -22,7 +22,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from common import (add_config_arguments, add_kernel_arguments, apply_kernel_arguments,
+from common import (add_config_arguments, add_kernel_arguments, kernel_overrides,
                     check_fits, compiled_memory, parse_args, peak_memory, write_result)
 from profile_ops import format_table, top_ops
 from wmjax.config import load_config
@@ -112,10 +112,10 @@ def main():
   parser.add_argument("--hlo", default=None, metavar="FILE.gz",
                       help="write the compiled step's HLO text (gzipped), to look up profiled ops")
   args = parse_args(parser)
-  mlp_blocks = apply_kernel_arguments(args)
+  kernel, mlp_blocks = kernel_overrides(args)
   mesh = tuple(int(v) for v in args.mesh.split(","))
-  result = benchmark(args.config, args.overrides, args.batch, args.frames, args.steps, mesh,
-                     args.peak_tflops, args.profile, args.hlo)
+  result = benchmark(args.config, args.overrides + kernel, args.batch, args.frames, args.steps,
+                     mesh, args.peak_tflops, args.profile, args.hlo)
   result["mlp_blocks"] = mlp_blocks
   write_result("train_step", result, args)
 

@@ -102,6 +102,16 @@ def test_model_with_fused_mlp_equals_the_xla_model():
     model.clone(mlp_kernel="triton").apply(params, x, t, a)
 
 
+def test_the_model_tiles_the_kernels_by_its_own_field(monkeypatch):
+  """``model.mlp_blocks`` reaches the kernels as an argument (no module-wide default that a
+  benchmark overwrites)."""
+  model, params, (x, t, a) = _model("frame")
+  seen, compiler_params = [], fused._params
+  monkeypatch.setattr(fused, "_params", lambda blocks: seen.append(blocks) or compiler_params(blocks))
+  model.clone(mlp_kernel="pallas", mlp_blocks=(32, 64, 16, 4, 2)).apply(params, x, t, a)
+  assert set(seen) == {fused.Blocks(32, 64, 16, 4, 2)}
+
+
 def test_fused_mlp_runs_one_kernel_per_device_under_a_mesh(monkeypatch):
   """Rows are split over the batch axes and the hidden width over 'tensor'; result unchanged."""
   assert jax.device_count() == 8

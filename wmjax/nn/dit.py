@@ -86,6 +86,7 @@ class LayerStack(nn.Module):
   temporal_first: bool = False
   spatial_rope: bool = False
   mlp_kernel: str = "xla"
+  mlp_blocks: tuple[int, ...] | None = None
   norm_kernel: str = "xla"
 
   @nn.compact
@@ -99,7 +100,7 @@ class LayerStack(nn.Module):
                   rope=self.rope, attention_impl=self.attention_impl, dtype=self.dtype,
                   return_kv=return_kv, temporal_first=self.temporal_first,
                   spatial_rope=self.spatial_rope, mlp_kernel=self.mlp_kernel,
-                  norm_kernel=self.norm_kernel)
+                  mlp_blocks=self.mlp_blocks, norm_kernel=self.norm_kernel)
     inputs = (x, spatial_cond, temporal_cond, patch_positions)
     if self.scan:
       # the scanned layers take frame_pos per layer: as given for the first, zeros for the others
@@ -148,6 +149,8 @@ class STDiT(nn.Module):
   attention_impl: str | None = "xla"  # a backend of wmjax.nn.attention (None: xla)
   # fused kernels (wmjax.nn.kernels): one of KERNEL_IMPLS each, 'xla' | 'pallas' | 'auto'
   mlp_kernel: str = "xla"  # Linear -> GELU -> Linear with the GELU in the matmuls' epilogues
+  # its tiles (rows, cols, depth, warps, stages) as wmjax.nn.kernels.mlp.Blocks; None: the defaults
+  mlp_blocks: tuple[int, int, int, int, int] | None = None
   norm_kernel: str = "xla"  # LayerNorm -> adaLN modulate in one pass
   dtype: str = "float32"  # compute dtype; parameters are always float32
   scan_layers: bool = True
@@ -196,7 +199,8 @@ class STDiT(nn.Module):
     self.blocks = LayerStack(self.depth // 2, self.num_heads, self.mlp_ratio, self.causal_temporal,
                              "rope" in self.temporal_pos, self.attention_impl, dtype,
                              self.scan_layers, self.remat, self.temporal_first,
-                             "rope" in self.spatial_pos, self.mlp_kernel, self.norm_kernel)
+                             "rope" in self.spatial_pos, self.mlp_kernel, self.mlp_blocks,
+                             self.norm_kernel)
     self.final_layer = layers.FinalLayer(self.patch_size ** 2 * self.in_channels, dtype=dtype,
                                          norm_kernel=self.norm_kernel)
 

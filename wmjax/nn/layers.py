@@ -31,6 +31,7 @@ from einops import rearrange
 
 from wmjax.nn.attention import attend
 from wmjax.nn.kernels import resolve_kernel
+from wmjax.nn.kernels.mlp import Blocks as MlpBlocks
 from wmjax.nn.kernels.mlp import mlp as fused_mlp
 from wmjax.nn.kernels.norm import layer_norm_modulate
 from wmjax.parallel import LOGICAL_RULES, MESH_AXES
@@ -229,7 +230,8 @@ class Mlp(nn.Module):
   """``Linear -> GELU(tanh) -> Linear``; ``[..., in] -> [..., features]``.
 
   ``kernel`` (a key of :data:`wmjax.nn.kernels.KERNEL_IMPLS`): 'xla' runs ``nn.Dense`` layers,
-  'pallas' the fused kernels of :mod:`wmjax.nn.kernels.mlp` on the same parameters.
+  'pallas' the fused kernels of :mod:`wmjax.nn.kernels.mlp` on the same parameters, tiled by
+  ``blocks`` (the fields of :class:`wmjax.nn.kernels.mlp.Blocks`; None: its defaults).
   """
 
   features: int
@@ -237,13 +239,15 @@ class Mlp(nn.Module):
   in_axis: str = "embed"
   dtype: Dtype = jnp.float32
   kernel: str = "xla"
+  blocks: tuple[int, ...] | None = None
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
     if resolve_kernel("model.mlp_kernel", self.kernel) == "pallas":
       w1, b1 = DenseParams(self.hidden, (self.in_axis, "mlp"), name="fc1")(x.shape[-1])
       w2, b2 = DenseParams(self.features, ("mlp", "embed"), name="fc2")(self.hidden)
-      return fused_mlp(x.astype(self.dtype), w1, b1, w2, b2, impl=self.kernel)
+      return fused_mlp(x.astype(self.dtype), w1, b1, w2, b2, impl=self.kernel,
+                       blocks=MlpBlocks(*(self.blocks or ())))
     x = nn.Dense(self.hidden, dtype=self.dtype, kernel_init=logical(_xavier, self.in_axis, "mlp"),
                  bias_init=logical(_zeros, "mlp"), name="fc1")(x)
     x = nn.gelu(x, approximate=True)
@@ -337,6 +341,7 @@ class STBlock(nn.Module):
   attention_impl: str | None = "xla"
   dtype: Dtype = jnp.float32
   mlp_kernel: str = "xla"  # Linear -> GELU -> Linear: a choice of wmjax.nn.kernels.KERNEL_IMPLS
+  mlp_blocks: tuple[int, ...] | None = None  # its tiles (Mlp.blocks)
   norm_kernel: str = "xla"  # LayerNorm -> modulate: a choice of wmjax.nn.kernels.KERNEL_IMPLS
 
   @nn.compact
@@ -364,7 +369,8 @@ class STBlock(nn.Module):
       raise ValueError(f"axis must be 'spatial' or 'temporal', got {self.axis!r}")
     x = x + gate_a * h
     h = layer_norm_modulate(x, shift_m, scale_m, impl=self.norm_kernel)
-    h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, kernel=self.mlp_kernel, name="mlp")(h)
+    h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, kernel=self.mlp_kernel,
+            blocks=self.mlp_blocks, name="mlp")(h)
     return constrain(x + gate_m * h), kv
 
 
@@ -391,13 +397,15 @@ class STLayer(nn.Module):
   temporal_first: bool = False
   spatial_rope: bool = False
   mlp_kernel: str = "xla"
+  mlp_blocks: tuple[int, ...] | None = None
   norm_kernel: str = "xla"
 
   @nn.compact
   def __call__(self, x, spatial_cond, temporal_cond, patch_positions, cache=None, frame_pos=None):
     common = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio,
                   attention_impl=self.attention_impl, dtype=self.dtype,
-                  mlp_kernel=self.mlp_kernel, norm_kernel=self.norm_kernel)
+                  mlp_kernel=self.mlp_kernel, mlp_blocks=self.mlp_blocks,
+                  norm_kernel=self.norm_kernel)
     spatial = STBlock("spatial", rope=self.spatial_rope, **common, name="spatial")
     temporal_block = STBlock("temporal", causal=self.causal, rope=self.rope, **common,
                              name="temporal")

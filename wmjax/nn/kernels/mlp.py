@@ -54,8 +54,6 @@ class Blocks:
 
 
 MIN_BLOCK = 16  # the smallest matmul tile Triton takes
-# The tiles the model's MLP layers use (a benchmark may set others before tracing).
-DEFAULT_BLOCKS = Blocks()
 
 
 def _tile(dim: int, limit: int) -> int | None:
@@ -261,15 +259,14 @@ _output.defvjp(_output_forward, _output_backward)
 
 
 def mlp(x: jax.Array, w1: jax.Array, b1: jax.Array, w2: jax.Array, b2: jax.Array, *,
-        impl: str = "pallas", blocks: Blocks | None = None, interpret: bool | None = None
+        impl: str = "pallas", blocks: Blocks = Blocks(), interpret: bool | None = None
         ) -> jax.Array:
   """``GELU(x w1 + b1) w2 + b2``: ``x [..., K]`` -> ``[..., F]`` in x's dtype (weights cast to
-  it). ``impl`` 'xla' is :func:`mlp_reference`; 'pallas' the fused kernels with ``blocks``
-  (default :data:`DEFAULT_BLOCKS`; in interpret mode off a GPU unless ``interpret`` says
-  otherwise); 'auto' picks by platform and falls back to 'xla' for
+  it). ``impl`` 'xla' is :func:`mlp_reference`; 'pallas' the fused kernels with the tiles
+  ``blocks`` (the model's ``model.mlp_blocks``; in interpret mode off a GPU unless ``interpret``
+  says otherwise); 'auto' picks by platform and falls back to 'xla' for
   widths the kernels cannot tile. The hidden pre-activation is named :data:`SAVED_NAME`."""
   _check(x, w1, b1, w2, b2)
-  blocks = blocks or DEFAULT_BLOCKS
   w1, b1, w2, b2 = (a.astype(x.dtype) for a in (w1, b1, w2, b2))
   fits = supports(x.shape[-1], w1.shape[1], w2.shape[1], blocks)
   if impl == "pallas" and not fits:
