@@ -90,9 +90,9 @@ class MixtureMember:
 class DataConfig:
   """``config.data``: one dataset (or a weighted ``mixture``) and how windows are cut from it.
 
-  ``dataset`` names a built-in layout (Open-X names, ``lerobot``) or a generated dataset
-  (``gridworld``, ``pusht``: made in ``data_dir`` with the parameters of ``data.<dataset>``);
-  others need ``spec``. ``image_key``, ``resize``, ``missing_image``, ``frame_step`` override the
+  ``dataset`` names a built-in layout (Open-X names, ``lerobot``) or a dataset the config's
+  ``task`` generates (made in ``data_dir`` with the parameters of ``data.<dataset>``); others
+  need ``spec``. ``image_key``, ``resize``, ``missing_image``, ``frame_step`` override the
   spec's where set (``""`` / None: the spec's).
   """
 

@@ -7,8 +7,8 @@ A step is the nested dict RLDS gives for one time step (``step['observation']['i
 
 Built-in specs (:data:`SPECS`): the Open-X datasets in the IRASim action spaces — RT-1 and Bridge
 7-dim ``[dx, dy, dz, droll, dpitch, dyaw, gripper]``, Language-Table 2-dim ``[dx, dy]``; the
-published actions are used as they are — and the datasets wmjax generates (gridworld, Push-T,
-registered by their modules). A dataset may have several published layouts; :func:`resolve_spec`
+published actions are used as they are — and the specs of the datasets the tasks generate,
+which their dataset modules register (:func:`register`). A dataset may have several published layouts; :func:`resolve_spec`
 picks the first whose keys the builder's ``info.features`` holds, or fails listing the keys it
 expected and found. Any other RLDS dataset is read by a spec given in ``config.data.spec`` (its
 schema is :class:`DatasetSpec`, see :func:`spec_config`); ``wmjax data inspect`` suggests one.
