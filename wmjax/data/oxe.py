@@ -7,11 +7,12 @@ A step is the nested dict RLDS gives for one time step (``step['observation']['i
 
 Built-in specs (:data:`SPECS`): the Open-X datasets in the IRASim action spaces — RT-1 and Bridge
 7-dim ``[dx, dy, dz, droll, dpitch, dyaw, gripper]``, Language-Table 2-dim ``[dx, dy]``; the
-published actions are used as they are — and the specs of the datasets the tasks generate,
-which their dataset modules register (:func:`register`). A dataset may have several published layouts; :func:`resolve_spec`
-picks the first whose keys the builder's ``info.features`` holds, or fails listing the keys it
-expected and found. Any other RLDS dataset is read by a spec given in ``config.data.spec`` (its
-schema is :class:`DatasetSpec`, see :func:`spec_config`); ``wmjax data inspect`` suggests one.
+published actions are used as they are — and the specs of the datasets the tasks generate, which
+their dataset modules register (:func:`register`). A dataset may have several published layouts;
+:func:`resolve_spec` picks the first whose keys the builder's ``info.features`` holds, or fails
+listing the keys it expected and found. Any other RLDS dataset is read by a spec given in
+``config.data.spec`` (its schema is :class:`DatasetSpec`, see :func:`spec_config`);
+``wmjax data inspect`` suggests one.
 """
 
 from __future__ import annotations
@@ -262,7 +263,8 @@ def specs_from_config(data: Mapping[str, Any]) -> tuple[DatasetSpec, ...]:
     raise ValueError(f"unknown dataset {name!r} and no config.data.spec: known datasets are "
                      f"{sorted(SPECS)}; for another RLDS dataset set config.data.spec (run "
                      f"`wmjax data inspect BUILDER_DIR` for a suggestion); a dataset a task "
-                     f"generates is known once its task is imported (config.task names it)")
+                     f"generates is known once the task module config.task names is imported "
+                     f"(wmjax.tasks.with_task(config) imports it)")
   overrides = {}
   for key, field in CONFIG_OVERRIDES.items():
     value = data.get(key)
