@@ -270,6 +270,18 @@ def test_a_package_loads_the_same_alone_as_after_others():
   assert str(alone) == fresh.stdout.strip()
 
 
+def test_the_design_document_lists_these_layers():
+  """docs/design.md, Layers, is the table above in words: the same layers, bottom to top."""
+  import pathlib
+  import re
+  text = (pathlib.Path(__file__).resolve().parents[1] / "docs" / "design.md").read_text()
+  section = text.split("\n## Layers\n", 1)[1].split("\n## ", 1)[0]
+  items = re.findall(r"^\d+\. .*(?:\n   .*)*", section, re.MULTILINE)
+  stated = [{name if name == "wmjax" else f"wmjax.{name}" for name in re.findall(r"`([\w.]+)`", item)}
+            for item in items]
+  assert stated == [set(layer) for layer in LAYERS]
+
+
 def test_every_module_has_a_layer():
   for module in _sources():
     layer_of(module)
