@@ -30,6 +30,7 @@ from wmjax.tasks.gridworld.dataset import GridworldConfig
 def get_config() -> ml_collections.ConfigDict:
   config = ml_collections.ConfigDict()
   config.name = "gridworld"
+  config.task = "wmjax.tasks.gridworld"  # its dataset and square metrics
   config.frame_shape = (16, 16, 3)
   config.codec = codec_config(kind="pixel")  # the model sees RGB in [-1, 1]
 

@@ -46,6 +46,7 @@ def get_config(profile: str = "cpu") -> ml_collections.ConfigDict:
     raise ValueError(f"Push-T profile must be one of {PROFILES}, got {profile!r}")
   config = ml_collections.ConfigDict()
   config.name = "pusht" if profile == "cpu" else f"pusht-{profile}"
+  config.task = "wmjax.tasks.pusht"  # its dataset, metrics and coverage reward
   pusht = PushTConfig(train_episodes=640)
   config.frame_shape = (pusht.image_size, pusht.image_size, 3)
   config.codec = codec_config(kind="pixel")

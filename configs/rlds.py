@@ -25,6 +25,7 @@ def get_config() -> ml_collections.ConfigDict:
   # the gridworld's recipe: 2-frame windows (a clean frame, the next one noised), 1-frame blocks
   config = load_config(os.path.join(os.path.dirname(os.path.abspath(__file__)), "gridworld.py"))
   config.name = "rlds"
+  config.task = ""  # a dataset of your own: no generated one
   config.frame_shape = RESOLUTION + (3,)
   config.data = ml_collections.ConfigDict(dict(
       dataset="lerobot", builder_dir="", spec=spec_config(action_keys=()), image_key="",

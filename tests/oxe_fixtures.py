@@ -1,6 +1,6 @@
 """Tiny datasets with the published Open-X Embodiment RLDS feature specs, written by TFDS.
 
-Keys, shapes, dtypes, nesting and action dicts follow the published builders (DESIGN.md, Data);
+Keys, shapes, dtypes, nesting and action dicts follow the published builders (docs/design.md, Data);
 episodes are short and images smooth so the files stay small. Writing TFRecord needs TensorFlow.
 """
 

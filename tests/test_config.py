@@ -11,6 +11,7 @@ import pytest
 
 from wmjax import config as config_lib
 from wmjax.config import ConfigError, apply_overrides, complete_config, load_config
+from wmjax.tasks import with_task
 from wmjax.tasks.gridworld import dataset as gridworld_data
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -41,6 +42,11 @@ def test_the_cli_refuses_a_misspelt_override_before_any_work(tmp_path, capsys):
                "--config.train.num_stepz=3"]) == 2
   assert "did you mean train.num_steps?" in capsys.readouterr().err
   assert not os.path.exists(tmp_path / "run" / "checkpoints")
+  # the task module a config names is imported before any work, a misspelt one named
+  assert main(["train", "--config", GRIDWORLD, "--workdir", str(tmp_path / "run"),
+               "--config.task=wmjax.tasks.gridwrold"]) == 2
+  assert "did you mean wmjax.tasks.gridworld?" in capsys.readouterr().err
+  assert not os.path.exists(tmp_path / "run")
 
 
 @pytest.mark.unit
@@ -51,6 +57,12 @@ def test_wrong_types_fail_and_values_take_the_schema_type():
     load_config(GRIDWORLD, ["sampling.kv_cache=1"])
   with pytest.raises(ConfigError, match=r"'frame_shape' must be a tuple \(int, int, int\)"):
     load_config(GRIDWORLD, ["frame_shape=(16,16)"])
+  with pytest.raises(ConfigError, match=r"'task' must name a module, e.g. 'wmjax.tasks.gridworld', "
+                                        r"got 'wmjax/tasks/gridworld.py'"):
+    load_config(GRIDWORLD, ["task=wmjax/tasks/gridworld.py"])
+  with pytest.raises(ConfigError, match=r"config.task 'wmjax.frames' is a module but registers "
+                                        r"no task"):
+    with_task(load_config(GRIDWORLD, ["task=wmjax.frames"]))
   config = load_config(GRIDWORLD, ["optim.learning_rate=1", "train.memory_budget_gib=3",
                                    "name=123", "mesh=[1,-1,1]", "model.dtype=bfloat16",
                                    "model.attention_impl=None", "data.builder_dir=/x"])
@@ -95,7 +107,7 @@ def test_a_config_saved_by_an_older_version_loads_with_defaults():
                        ("optim", "grad_accum"), ("train", "auto_fit"), ("model", "remat")):
     del saved[section][key]
   del saved["data"]["gridworld"]["snap_to_pixels"]
-  del saved["rollout"], saved["codec"]
+  del saved["rollout"], saved["codec"], saved["task"]
   saved["model"]["since_removed"] = 1
   with pytest.raises(ConfigError, match="since_removed"):
     complete_config(saved)
@@ -111,6 +123,8 @@ def test_a_config_saved_by_an_older_version_loads_with_defaults():
   # the gridworld's own convention: positions before snap_to_pixels existed were sub-pixel
   assert config.data.gridworld.snap_to_pixels is False
   assert config.model.since_removed == 1 and "mlp_kernel" not in config.model
+  # the task of a config saved before config.task existed: the one generating its dataset
+  assert config.task == "" and with_task(saved, strict=False).task == "wmjax.tasks.gridworld"
   # a new config that leaves the key (or the whole section) out gets the documented default
   fresh = json.loads(load_config(GRIDWORLD).to_json())
   del fresh["data"]["gridworld"]["snap_to_pixels"]

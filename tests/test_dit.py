@@ -236,7 +236,7 @@ def test_flop_counter_matches_xla(cond, fourier):
 def test_flops_of_irasim_xl_match_the_design_figure():
   config = load_config(str(ROOT / "configs" / "irasim.py:XL"))
   flops = forward_flops(STDiT(**config.model), 1, 16, 32, 40)
-  assert 4.6e12 < flops < 4.9e12  # DESIGN.md: about 4.75 TFLOP
+  assert 4.6e12 < flops < 4.9e12  # docs/design.md: about 4.75 TFLOP
 
 
 @pytest.mark.parametrize("shape_change,message", [

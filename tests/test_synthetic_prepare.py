@@ -1,5 +1,5 @@
-"""Generated datasets are written once, also when several jobs start together, and ask for their
-task's import when it is missing."""
+"""Generated datasets are written once, also when several jobs start together. (One whose task
+is not imported fails naming config.task: tests/test_layering.py.)"""
 
 import os
 import subprocess
@@ -28,15 +28,6 @@ def test_two_processes_preparing_one_dataset_both_succeed(tmp_path):
   (path,) = paths
   assert os.path.isfile(os.path.join(path, "dataset_info.json"))
   assert not [d for d in os.listdir(os.path.dirname(path)) if d.startswith("incomplete")]
-
-
-def test_a_built_in_dataset_before_its_task_is_imported_names_the_import(monkeypatch):
-  import ml_collections
-
-  from wmjax.data import sources
-  monkeypatch.delitem(sources.GENERATED, "gridworld", raising=False)
-  with pytest.raises(ValueError, match="`import wmjax.tasks` first"):
-    sources.dataset_dir(ml_collections.ConfigDict(dict(dataset="gridworld", data_dir="/tmp")))
 
 
 def test_a_written_dataset_is_found_without_its_builder(tmp_path, monkeypatch):

@@ -5,10 +5,11 @@ A config is an ``ml_collections.ConfigDict`` whose sections follow the dataclass
 for ``model``, ``sampling`` and ``data.spec``, the dataclasses they configure:
 :class:`wmjax.nn.STDiT`, :class:`wmjax.diffusion.SamplerConfig`,
 :class:`wmjax.data.oxe.DatasetSpec`; ``data.<generated dataset>`` follows that dataset's
-parameters, e.g. :class:`~wmjax.tasks.gridworld.dataset.GridworldConfig`). :func:`complete_config` checks a
-config against them: an unknown key raises :class:`ConfigError` naming the nearest valid keys, a
-value of the wrong type raises naming the type wanted, and every key left out takes its default
-here, so code reads ``config.data.train_split`` and never repeats a default. Config files and
+parameters, e.g. :class:`~wmjax.tasks.gridworld.dataset.GridworldConfig`, known once the task
+that generates it is imported: ``task`` names it). :func:`complete_config` checks a config
+against them: an unknown key raises :class:`ConfigError` naming the nearest valid keys, a value
+of the wrong type raises naming the type wanted, and every key left out takes its default here,
+so code reads ``config.data.train_split`` and never repeats a default. Config files and
 overrides are checked when they are loaded (:func:`load_config`); a config saved by an older
 version (a workdir's ``config.json``, a checkpoint's) loads with the keys added since at their
 defaults (``strict=False`` also keeps keys since removed).
@@ -29,6 +30,8 @@ import typing
 from typing import Any, Mapping, Sequence
 
 import ml_collections
+
+from wmjax import registry
 
 OVERRIDE_PREFIX = "--config."
 
@@ -87,9 +90,9 @@ class MixtureMember:
 class DataConfig:
   """``config.data``: one dataset (or a weighted ``mixture``) and how windows are cut from it.
 
-  ``dataset`` names a built-in layout (Open-X names, ``lerobot``) or a generated dataset
-  (``gridworld``, ``pusht``: made in ``data_dir`` with the parameters of ``data.<dataset>``);
-  others need ``spec``. ``image_key``, ``resize``, ``missing_image``, ``frame_step`` override the
+  ``dataset`` names a built-in layout (Open-X names, ``lerobot``) or a dataset the config's
+  ``task`` generates (made in ``data_dir`` with the parameters of ``data.<dataset>``); others
+  need ``spec``. ``image_key``, ``resize``, ``missing_image``, ``frame_step`` override the
   spec's where set (``""`` / None: the spec's).
   """
 
@@ -114,12 +117,10 @@ class DataConfig:
 
   @staticmethod
   def extra_sections() -> dict[str, type]:
-    """``data.<name>`` sections beyond the fields: the parameters of each generated dataset
-    (:func:`wmjax.data.sources.register_generated`; the built-in tasks' are loaded here)."""
-    from wmjax import registry
-    registry.load_built_in_tasks()
-    sources = sys.modules.get("wmjax.data.sources")  # the tasks have loaded it
-    return {name: entry[0] for name, entry in getattr(sources, "GENERATED", {}).items()}
+    """``data.<name>`` sections beyond the fields: the parameters of each generated dataset of
+    the tasks imported so far (:func:`wmjax.registry.generated_datasets`; a config file imports
+    its task, e.g. for the parameters' dataclass, and the entry points import ``config.task``)."""
+    return {name: d.params for name, d in registry.generated_datasets().items()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -196,6 +197,9 @@ class Config:
   frame_shape: tuple[int, int, int]  # what the network sees per frame: (H, W, C) after the codec
   batch_size: int  # global
   name: str = ""
+  # the task module the run uses (its generated dataset, metrics, rewards), e.g.
+  # "wmjax.tasks.gridworld"; imported by the entry points (wmjax.tasks.with_task); "" for none
+  task: str = ""
   codec: Any = _section(CodecConfig)
   data: Any = _section(DataConfig)
   model: Any = _section("wmjax.nn.dit:STDiT", skip=("parent", "name"))
@@ -446,8 +450,12 @@ def complete_config(config: Mapping | ml_collections.ConfigDict, strict: bool = 
   config saved by another version) keeps unknown keys as they are instead, but drops those of
   :data:`RETIRED_KEYS`, which a new config may not hold.
   """
-  return ml_collections.ConfigDict(_complete(Config, _without_retired(config, strict), "",
-                                             strict))
+  completed = ml_collections.ConfigDict(_complete(Config, _without_retired(config, strict), "",
+                                                  strict))
+  if completed.task and not all(part.isidentifier() for part in completed.task.split(".")):
+    raise ConfigError(f"config key 'task' must name a module, e.g. 'wmjax.tasks.gridworld', "
+                      f"got {completed.task!r}")
+  return completed
 
 
 def section_config(section: str, **values) -> ml_collections.ConfigDict:

@@ -1,22 +1,28 @@
-"""What tasks add to the generic code, looked up by name instead of special-cased there:
+"""The one registry of tasks: what a task adds to the generic code, looked up by name there
+instead of special-cased.
 
+A task module (``wmjax.tasks.gridworld``, ``wmjax.tasks.pusht``, or one of your own) calls
+:func:`register` with a :class:`Task` when it is imported; a config names the module it uses
+(``config.task``) and the entry points import it (:func:`wmjax.tasks.with_task`). Nothing here
+imports a task: a lookup finds what has been registered, and the code below the tasks' layer
+(data, eval, train) asks only here. A task adds
+
+* generated datasets (:class:`GeneratedDataset`, keyed by ``config.data.dataset``; the parameters
+  are the config section ``config.data.<name>``), which :func:`wmjax.data.sources.dataset_dir`
+  makes on first use;
 * per-frame metrics of a dataset (:class:`FrameMetrics`, keyed by the dataset's spec name), which
   :func:`wmjax.eval.metrics.frame_metrics` adds to the pixel metrics;
 * named rewards (``reward(frames [B, T, H, W, 3], instruction) -> [B]``) for
   :func:`wmjax.eval.rewards.reward_from_spec`.
 
-Generated datasets register with :func:`wmjax.data.sources.register_generated` and dataset specs
-with :func:`wmjax.data.oxe.register`. Importing :mod:`wmjax.tasks` registers every built-in task;
-the lookups here and in :mod:`wmjax.data.sources` do it on first use
-(:func:`load_built_in_tasks`), so that the code below the tasks' layer, which never imports
-them by name, still finds them. A task of your own registers the same way, when imported.
+How a dataset's records are read (its :class:`wmjax.data.oxe.DatasetSpec`) is the data layer's
+own catalogue, :func:`wmjax.data.oxe.register`, which a task's dataset module fills too.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
-from typing import Callable, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -39,32 +45,51 @@ class FrameMetrics:
   object_masks: MaskFn | None = None
 
 
-_FRAME_METRICS: dict[str, FrameMetrics] = {}
-_REWARDS: dict[str, Callable] = {}
+@dataclasses.dataclass(frozen=True)
+class GeneratedDataset:
+  """A dataset a task generates: ``prepare(data_dir, params)`` writes it (once per parameter
+  set) and returns its builder directory; ``params`` is the dataclass of its parameters, the
+  schema of ``config.data.<name>`` (``from_dict``, and ``from_saved`` for a saved config)."""
+
+  params: type
+  prepare: Callable[[str, Any], str]
 
 
-def load_built_in_tasks() -> None:
-  """Import :mod:`wmjax.tasks`, whose packages register here (once; later calls cost nothing)."""
-  importlib.import_module("wmjax.tasks")
+@dataclasses.dataclass(frozen=True)
+class Task:
+  """What one task module adds; ``module`` is its import name, what ``config.task`` holds."""
+
+  module: str
+  datasets: Mapping[str, GeneratedDataset] = dataclasses.field(default_factory=dict)
+  frame_metrics: Mapping[str, FrameMetrics] = dataclasses.field(default_factory=dict)
+  rewards: Mapping[str, Callable] = dataclasses.field(default_factory=dict)
 
 
-def register_frame_metrics(dataset: str, metrics: FrameMetrics) -> None:
-  """Score frames of the dataset whose spec is named ``dataset`` with ``metrics`` too."""
-  _FRAME_METRICS[dataset] = metrics
+_TASKS: dict[str, Task] = {}
+
+
+def register(task: Task) -> None:
+  """Add ``task`` (a task module calls this when imported; registering a module again replaces
+  its entry)."""
+  _TASKS[task.module] = task
+
+
+def task(module: str) -> Task | None:
+  """The task registered by ``module``, if it has been imported."""
+  return _TASKS.get(module)
+
+
+def generated_datasets() -> dict[str, GeneratedDataset]:
+  """Every registered generated dataset by name."""
+  return {name: d for t in _TASKS.values() for name, d in t.datasets.items()}
 
 
 def frame_metrics_of(dataset: str) -> FrameMetrics | None:
-  """The task metrics registered for ``dataset``, if any."""
-  load_built_in_tasks()
-  return _FRAME_METRICS.get(dataset)
-
-
-def register_reward(name: str, reward: Callable) -> None:
-  """Make ``name`` a reward spec (``--reward NAME``)."""
-  _REWARDS[name] = reward
+  """The task metrics registered for the dataset spec ``dataset``, if any."""
+  return next((t.frame_metrics[dataset] for t in _TASKS.values() if dataset in t.frame_metrics),
+              None)
 
 
 def rewards() -> dict[str, Callable]:
   """Every registered reward by name."""
-  load_built_in_tasks()
-  return dict(_REWARDS)
+  return {name: r for t in _TASKS.values() for name, r in t.rewards.items()}

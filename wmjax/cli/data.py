@@ -13,10 +13,10 @@ def prepare(args, extra) -> int:
   """Generate a dataset (gridworld, or Push-T from the gym-pusht simulator) as an RLDS TFDS
   dataset in ArrayRecord, once per parameter set; prints the builder directory."""
   del extra
-  from wmjax.data.sources import GENERATED
-  params_class, prepare_fn = GENERATED[args.dataset]
-  fields = {f.name: getattr(args, f.name) for f in dataclasses.fields(params_class)}
-  print(prepare_fn(args.data_dir, params_class(**fields)))
+  from wmjax import registry
+  generated = registry.generated_datasets()[args.dataset]  # its task is imported: _add_prepare
+  fields = {f.name: getattr(args, f.name) for f in dataclasses.fields(generated.params)}
+  print(generated.prepare(args.data_dir, generated.params(**fields)))
   return 0
 
 
@@ -104,18 +104,19 @@ def _bool(text: str) -> bool:
 
 
 def _add_prepare(data_sub) -> None:
-  """``data prepare NAME``: one subcommand per registered generated dataset, one flag per field
-  of its parameter dataclass."""
-  from wmjax import tasks  # noqa: F401  (importing it registers the generated datasets)
-  from wmjax.data.sources import GENERATED
+  """``data prepare NAME``: one subcommand per generated dataset of the built-in tasks, one flag
+  per field of its parameter dataclass."""
+  from wmjax import tasks
   parser = data_sub.add_parser("prepare", help="generate a dataset (RLDS, ArrayRecord)",
                                description=prepare.__doc__)
   prepare_sub = parser.add_subparsers(dest="dataset", required=True)
-  for name, (params_class, _) in GENERATED.items():
+  generated = {name: d for module in tasks.BUILT_IN
+               for name, d in tasks.import_task(module).datasets.items()}
+  for name, made in generated.items():
     dataset = prepare_sub.add_parser(name, help=f"generate the {name} dataset",
                                      description=prepare.__doc__)
     dataset.add_argument("--data_dir", required=True, help="TFDS data directory to write into")
-    for field in dataclasses.fields(params_class):
+    for field in dataclasses.fields(made.params):
       parse = (_float_tuple if isinstance(field.default, tuple) else
                _bool if isinstance(field.default, bool) else type(field.default))
       shown = ",".join(map(str, field.default)) if isinstance(field.default, tuple) else field.default

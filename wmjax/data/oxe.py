@@ -7,11 +7,11 @@ A step is the nested dict RLDS gives for one time step (``step['observation']['i
 
 Built-in specs (:data:`SPECS`): the Open-X datasets in the IRASim action spaces — RT-1 and Bridge
 7-dim ``[dx, dy, dz, droll, dpitch, dyaw, gripper]``, Language-Table 2-dim ``[dx, dy]``; the
-published actions are used as they are — and the datasets wmjax generates (gridworld, Push-T,
-registered by their modules). A dataset may have several published layouts; :func:`resolve_spec`
-picks the first whose keys the builder's ``info.features`` holds, or fails naming, for the
-closest layout, each spec field whose keys the features lack, what they hold instead and the
-config key that chooses it. Any other RLDS dataset is read by a spec given in
+published actions are used as they are — and the specs of the datasets the tasks generate, which
+their dataset modules register (:func:`register`). A dataset may have several published layouts;
+:func:`resolve_spec` picks the first whose keys the builder's ``info.features`` holds, or fails
+naming, for the closest layout, each spec field whose keys the features lack, what they hold
+instead and the config key that chooses it. Any other RLDS dataset is read by a spec given in
 ``config.data.spec`` (its schema is :class:`DatasetSpec`, see :func:`spec_config`); ``wmjax data
 inspect`` suggests one.
 """
@@ -227,7 +227,8 @@ SPECS["bridge_dataset"] = tuple(dataclasses.replace(s, name="bridge_dataset")
 
 
 def register(spec: DatasetSpec) -> None:
-  """Add a layout for ``spec.name`` (the synthetic datasets register themselves)."""
+  """Add a layout for ``spec.name`` (the tasks' generated datasets register theirs when
+  imported)."""
   SPECS[spec.name] = tuple(s for s in SPECS.get(spec.name, ()) if s.layout != spec.layout) + (spec,)
 
 
@@ -256,7 +257,9 @@ def specs_from_config(data: Mapping[str, Any]) -> tuple[DatasetSpec, ...]:
   else:
     raise ValueError(f"unknown dataset {name!r} and no config.data.spec: known datasets are "
                      f"{sorted(SPECS)}; for another RLDS dataset set config.data.spec (run "
-                     f"`wmjax data inspect BUILDER_DIR` for a suggestion)")
+                     f"`wmjax data inspect BUILDER_DIR` for a suggestion); a dataset a task "
+                     f"generates is known once the task module config.task names is imported "
+                     f"(wmjax.tasks.with_task(config) imports it)")
   overrides = {}
   for key, field in CONFIG_OVERRIDES.items():
     value = data.get(key)

@@ -3,7 +3,7 @@
 An episode's steps arrive *batched* (every feature with a leading step axis ``L``) with images
 still encoded, so that only the frames of a window are decoded. A window of ``F`` frames starting
 at step ``s`` holds frames ``s .. s+F-1`` and the ``F-1`` actions ``s .. s+F-2`` (action ``j``
-moves frame ``j`` to frame ``j+1``, DESIGN.md alignment).
+moves frame ``j`` to frame ``j+1``: docs/design.md, Tensor conventions).
 
 A window is a dict of numpy arrays:
   frames       uint8 ``[F, H, W, 3]`` fitted to the requested resolution (aspect ratio kept)

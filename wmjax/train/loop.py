@@ -50,8 +50,9 @@ from wmjax.errors import CheckpointError, RunError
 from wmjax.eval.metrics import frame_metrics
 from wmjax.eval.video import comparison, stack_rows, write_video
 from wmjax.model import WorldModel
-from wmjax.rollout import rollout
 from wmjax.registry import FrameMetrics, frame_metrics_of
+from wmjax.rollout import rollout
+from wmjax.tasks import with_task
 from wmjax.train import fit, memory
 from wmjax.train.checkpoint import Checkpointer, shapes_by_path
 from wmjax.train.data import build_data, eval_windows
@@ -245,11 +246,13 @@ def train(config: ml_collections.ConfigDict, workdir: str, *,
   """Train (or resume) in ``workdir``; returns the final train state and evaluation metrics
   (only ``step`` with ``train.eval_every=0``).
 
-  A resumed run must match the config of its checkpoint except for
+  The task ``config.task`` names is imported first (:func:`wmjax.tasks.with_task`). A resumed
+  run must match the config of its checkpoint except for
   :data:`wmjax.train.resume.SAFE_ON_RESUME` and the keys (or sections) named in
   ``allow_config_change``; see :mod:`wmjax.train.resume`. Stopped by SIGTERM or Ctrl-C, it saves
   a checkpoint (if the state is finite) and returns ``{'step', 'stopped', 'signal'}`` as metrics.
   """
+  config = with_task(config)
   workdir = os.path.abspath(os.path.expanduser(workdir))
   created = make_workdir(workdir)
   try:
