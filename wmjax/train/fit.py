@@ -207,6 +207,7 @@ def compile_step(config: ml_collections.ConfigDict, target: Target, batch: int |
   frames = config.data.frames if "data" in config else net.num_frames
   shape = tuple(config.frame_shape)
   mesh = parallel.make_mesh(tuple(config.mesh), list(target.devices))
+  parallel.check_batch_divisible(batch, mesh, what="global batch_size")
   start = time.perf_counter()
   with attention.platform_override(target.platform):
     trainer = ShardedTrainer(world_model, config, mesh, shape, frames)

@@ -283,8 +283,7 @@ class _Setup:
 
   config: ml_collections.ConfigDict  # as fitted to the device's memory (remat, accumulation)
   data: Any  # wmjax.train.data.TrainData
-  mesh: Any
-  trainer: ShardedTrainer
+  trainer: ShardedTrainer  # with its mesh and the step compiled
   say: Any  # print on the chief process, nothing elsewhere
 
   @property
@@ -294,15 +293,15 @@ class _Setup:
 
 def _set_up(config: ml_collections.ConfigDict, is_chief: bool) -> _Setup:
   """Phase 1: data, mesh and model checked against each other, and the step compiled and fitted
-  to the device's memory (the analytic estimate is only a hint beside XLA's figure)."""
+  to the device's memory (the analytic estimate is only a hint beside XLA's figure). The one
+  mesh of the run is the trainer's."""
   data = build_data(config, evaluation=config.train.eval_every > 0)
-  mesh = parallel.make_mesh(config.mesh)
-  parallel.check_batch_divisible(config.batch_size, mesh, processes=jax.process_count(),
-                                 what="global batch_size")
   say = functools.partial(print, flush=True) if is_chief else lambda *_: None
   say(f"hint: analytic {memory.describe(memory.estimate(config, jax.device_count()))}")
   config, trainer, _ = fit.fit_for_training(config, log=say)
-  return _Setup(config, data, mesh, trainer, say)
+  parallel.check_batch_divisible(config.batch_size, trainer.mesh, processes=jax.process_count(),
+                                 what="global batch_size")
+  return _Setup(config, data, trainer, say)
 
 
 class _RunLog:
@@ -425,7 +424,7 @@ def _train(config: ml_collections.ConfigDict, workdir: str,
           break
         raise
       global_batch = parallel.global_batch({k: batch[k] for k in ("frames", "actions")},
-                                           run.mesh)
+                                           run.trainer.mesh)
       frames = global_batch["frames"]
       if encode_frames:  # the latents keep the batch's sharding
         frames = jax.device_put(data.codec.encode(frames, jax.random.fold_in(encode_key, step)),
