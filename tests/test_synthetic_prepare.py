@@ -21,8 +21,9 @@ def test_two_processes_preparing_one_dataset_both_succeed(tmp_path):
   jobs = [subprocess.Popen([sys.executable, "-c", PREPARE, str(tmp_path)], stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True) for _ in range(2)]
   results = [job.communicate(timeout=600) for job in jobs]
-  for job, (_, err) in zip(jobs, results):
+  for job, (out, err) in zip(jobs, results):
     assert job.returncode == 0, err[-2000:]
+    assert "downloaded and prepared" not in out + err  # TFDS's line: nothing is downloaded
   paths = {out.strip().splitlines()[-1] for out, _ in results}
   assert len(paths) == 1
   (path,) = paths

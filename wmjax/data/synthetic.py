@@ -25,7 +25,7 @@ from typing import Any, Iterator
 import numpy as np
 import tensorflow_datasets as tfds
 
-from wmjax.data.writer import png
+from wmjax.data.writer import NothingDownloaded, png
 
 
 @dataclasses.dataclass
@@ -78,7 +78,7 @@ def matching(states, reference, atol: float = 1e-6) -> np.ndarray:
   return found
 
 
-class SyntheticBuilder(tfds.core.GeneratorBasedBuilder):
+class SyntheticBuilder(NothingDownloaded, tfds.core.GeneratorBasedBuilder):
   """Base builder; subclasses set ``VERSION`` / ``RELEASE_NOTES`` and implement the hooks."""
 
   def __init__(self, *, params, **kwargs):

@@ -99,6 +99,18 @@ def step_features(image_shapes: Mapping[str, tuple[int, int]], action_dim: int,
           "is_first": np.bool_, "is_last": np.bool_, "is_terminal": np.bool_}
 
 
+class NothingDownloaded:
+  """Mixin for a TFDS builder that writes data made here: TFDS's lines about downloading and
+  "Dataset ... downloaded and prepared" are not printed (nothing is downloaded; the commands say
+  what they wrote)."""
+
+  def _log_download_bytes(self) -> None:
+    pass
+
+  def _log_download_done(self) -> None:
+    pass
+
+
 def check_out(out: str) -> str:
   """``out`` as a path, or an error when it exists (imports never overwrite)."""
   out = os.fspath(out)
@@ -129,7 +141,7 @@ def write_builder(out: str, name: str, description: str, step: Mapping[str, Any]
   def _generate_examples(self, examples: SplitExamples):
     yield from examples()
 
-  builder_class = type(f"{name}_import", (tfds.core.GeneratorBasedBuilder,), {
+  builder_class = type(f"{name}_import", (NothingDownloaded, tfds.core.GeneratorBasedBuilder), {
       "name": name, "VERSION": tfds.core.Version("1.0.0"), "_info": _info,
       "_split_generators": _split_generators, "_generate_examples": _generate_examples,
   }, skip_registration=True)
