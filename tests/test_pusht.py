@@ -4,6 +4,7 @@ functions, and `wmjax eval-policy` / `wmjax plan` end to end on a tiny model."""
 import importlib.util
 import json
 import os
+import sys
 from pathlib import Path
 
 import jax
@@ -213,6 +214,14 @@ def test_prepare_command_writes_labelled_episodes(tmp_path):
       train_episodes=4, test_episodes=2, episode_length=6, noise_levels=(0, 0.5), batch=3),
       "train")
   assert synthetic.matching(stored, replayed, atol=1e-3).all()
+
+
+@pytest.mark.unit
+def test_without_the_simulator_preparing_writes_nothing(tmp_path, monkeypatch):
+  monkeypatch.setitem(sys.modules, "gym_pusht", None)  # its import fails, as when not installed
+  with pytest.raises(ImportError, match=r"pip install 'wmjax\[pusht\]'"):
+    pusht_data.prepare(str(tmp_path / "data"), pusht_data.PushTConfig(train_episodes=2))
+  assert not (tmp_path / "data").exists()  # no dataset folder, no lock
 
 
 @pytest.mark.unit

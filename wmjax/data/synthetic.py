@@ -103,6 +103,11 @@ class SyntheticBuilder(NothingDownloaded, tfds.core.GeneratorBasedBuilder):
     split's stream without simulating or writing anything."""
     raise NotImplementedError(f"{cls.__name__} must define start_states()")
 
+  @classmethod
+  def check_can_write(cls) -> None:
+    """Raise, before anything is written, when what the generator needs is missing (a
+    simulator's package, say); nothing is needed by default."""
+
   @staticmethod
   def episode_count(params, split: str) -> int:
     if split not in SPLITS:
@@ -172,6 +177,7 @@ def prepare(builder_class: type[SyntheticBuilder], data_dir: str, params) -> str
   written = os.path.join(data_dir, builder_class.name, params.name, str(builder_class.VERSION))
   if "://" not in data_dir and os.path.exists(os.path.join(written, "dataset_info.json")):
     return written  # reading needs no builder (nor TensorFlow, which writing does)
+  builder_class.check_can_write()  # before a directory or lock is made
   with _one_writer(data_dir, f"{builder_class.name}-{params.name}"):
     builder = builder_class(params=params, data_dir=data_dir, file_format="array_record")
     builder.download_and_prepare()

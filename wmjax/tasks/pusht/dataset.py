@@ -122,6 +122,10 @@ class PushT(synthetic.SyntheticBuilder):
     return collect(self.params, count, rng)
 
   @classmethod
+  def check_can_write(cls):
+    simulator.check_installed()
+
+  @classmethod
   def start_states(cls, params, split):
     """``reset_to_state`` vectors ``[N, 5]`` every episode of ``split`` started from."""
     draws = _draws(params, cls.episode_count(params, split), synthetic.stream(params.seed, split))

@@ -219,16 +219,22 @@ def reset_state(agent, origin, angle: float) -> np.ndarray:
   return np.array([*agent, cog[0] - BLOCK_COG[0], cog[1] - BLOCK_COG[1], angle])
 
 
+def check_installed() -> None:
+  """ImportError naming the extra to install when gym-pusht is missing."""
+  try:
+    import gymnasium  # noqa: F401
+    import gym_pusht  # noqa: F401  (registers gym_pusht/PushT-v0)
+  except ImportError as e:
+    raise ImportError(f"the Push-T simulator needs gym-pusht: pip install 'wmjax[pusht]' ({e})"
+                      ) from e
+
+
 class PushTSimulator:
   """``B`` gym-pusht environments stepped together, rendering ``image_size`` square frames."""
 
   def __init__(self, num_envs: int, image_size: int = 96):
-    try:
-      import gymnasium as gym
-      import gym_pusht  # noqa: F401  (registers gym_pusht/PushT-v0)
-    except ImportError as e:
-      raise ImportError(f"the Push-T simulator needs gym-pusht: pip install 'wmjax[pusht]' ({e})"
-                        ) from e
+    check_installed()
+    import gymnasium as gym
     if num_envs < 1 or image_size < 8:
       raise ValueError(f"need num_envs >= 1 and image_size >= 8, got {num_envs}, {image_size}")
     self.image_size = image_size
