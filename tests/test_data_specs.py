@@ -243,6 +243,25 @@ def test_inspect_decodes_instructions_from_tfrecord_too(fractal, capsys):
       capsys.readouterr().out)
 
 
+def test_the_printed_command_follows_the_splits_the_data_has():
+  """A dataset's own test split is held out; a dataset of one split other than train (IRASim's
+  example has only ``test``) is carved into 90 % / 10 %; train alone keeps configs/rlds.py's
+  ``train[:90%]`` / ``train[90%:]``."""
+  from wmjax.config import load_config
+  from wmjax.data.describe import split_overrides
+  assert split_overrides({"train": 9, "test": 2}) == (
+      "--config.data.train_split=train --config.data.eval_split=test")
+  only_test = split_overrides({"train": 0, "test": 8})
+  assert only_test == ("--config.data.train_split='test[:90%]' "
+                       "--config.data.eval_split='test[90%:]'")
+  assert split_overrides({"train": 5}) == split_overrides({"train": 5, "val": 0}) == ""
+  rlds = load_config(str(ROOT / "configs" / "rlds.py"))
+  assert (rlds.data.train_split, rlds.data.eval_split) == ("train[:90%]", "train[90%:]")
+  overrides = [a.replace("'", "").removeprefix("--config.") for a in only_test.split()]
+  config = load_config(str(ROOT / "configs" / "rlds.py"), overrides)  # as the shell passes them
+  assert (config.data.train_split, config.data.eval_split) == ("test[:90%]", "test[90%:]")
+
+
 def test_inspect_recognises_a_string_tensor_instruction():
   """The published layouts declare instructions as ``Tensor[] string``, not ``Text``."""
   import tensorflow_datasets as tfds

@@ -97,6 +97,20 @@ def _instruction_lines(builder, spec: oxe.DatasetSpec) -> list[str]:
     return [f"instructions: not read ({e})"]
 
 
+def split_overrides(splits) -> str:
+  """The ``data.train_split`` / ``data.eval_split`` overrides of configs/rlds.py (default
+  ``train[:90%]`` / ``train[90%:]``) that follow the splits a dataset has (``splits``: name ->
+  number of episodes): its own ``test`` split held out where it has ``train`` and ``test``; the
+  last 10 % of episodes of its one split where it has one other than ``train``."""
+  present = [name for name, count in splits.items() if count]
+  if {"train", "test"} <= set(present):
+    return "--config.data.train_split=train --config.data.eval_split=test"
+  if len(present) == 1 and present != ["train"]:
+    (only,) = present
+    return f"--config.data.train_split='{only}[:90%]' --config.data.eval_split='{only}[90%:]'"
+  return ""
+
+
 def describe(builder) -> str:
   """The text ``wmjax data inspect`` prints for a TFDS builder."""
   info = builder.info
@@ -110,6 +124,7 @@ def describe(builder) -> str:
   spec = builtin_spec(info.name, info.features)
   builtin = spec is not None
   spec = spec or suggest_spec(info.name, info.features)
+  splits = split_overrides({name: split.num_examples for name, split in info.splits.items()})
   lines += ["", _keys_read(spec)] + _instruction_lines(builder, spec)
   if builtin:
     others = [c for c in cameras if c not in spec.image_keys]
@@ -118,9 +133,10 @@ def describe(builder) -> str:
               + f", camera {', '.join(spec.image_keys)}"
               + (f"; others: {', '.join(others)}, chosen with --config.data.image_key" if others
                  else "") + "); train on it with",
-              f"  wmjax train --config configs/rlds.py --workdir WORKDIR "
-              f"--config.data.builder_dir={builder.data_dir} --config.data.dataset={spec.name} "
-              f"--config.model.action_dim={spec.action_dim}"]
+              " ".join(filter(None, [
+                  f"  wmjax train --config configs/rlds.py --workdir WORKDIR "
+                  f"--config.data.builder_dir={builder.data_dir} --config.data.dataset={spec.name} "
+                  f"--config.model.action_dim={spec.action_dim}", splits]))]
     return "\n".join(lines)
   lines += ["", "suggested spec (check it; config.data.spec of configs/rlds.py, or overrides):"]
   for key, value in spec.to_dict().items():
@@ -137,5 +153,5 @@ def describe(builder) -> str:
             f"--config.data.spec.instruction_key={instruction} "
             f"--config.data.spec.action_keys=\"{tuple(spec.action_keys)!r}\" "
             f"--config.data.spec.gripper_dim={spec.gripper_dim} "
-            f"--config.model.action_dim={spec.action_dim}"]
+            f"--config.model.action_dim={spec.action_dim}" + (f" {splits}" if splits else "")]
   return "\n".join(lines)
