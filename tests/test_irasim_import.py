@@ -2,6 +2,7 @@
 irasim` writing a workdir. The IRASim checkpoints here are synthetic: a tiny model's parameters
 written under IRASim's key names and shapes by the mapping's inverse (no IRASim code)."""
 
+import json
 import os
 import sys
 
@@ -133,7 +134,7 @@ def test_import_writes_a_workdir_load_model_reads(tiny_config, tmp_path, weights
 
 
 @pytest.mark.integration
-def test_cli_import(tiny_config, tmp_path):
+def test_cli_import(tiny_config, tmp_path, capsys):
   from wmjax.cli import main
   network = network_of(tiny_config, "frame_ada")
   path = tmp_path / "ckpt.pt"
@@ -141,6 +142,19 @@ def test_cli_import(tiny_config, tmp_path):
   assert main(["import", "irasim", str(path), "--workdir", str(tmp_path / "w"), "--dataset",
                "bridge", "--config", tiny_config]) == 0
   assert {"config.json", "checkpoints", "irasim_import.json"} <= set(os.listdir(tmp_path / "w"))
+  assert "one trained with IRASim's final_frame_ada=True needs --final_frame_ada" in (
+      capsys.readouterr().out)
+  assert main(["import", "irasim", str(path), "--workdir", str(tmp_path / "ada"), "--dataset",
+               "bridge", "--config", tiny_config, "--final_frame_ada"]) == 0
+  saved = json.loads((tmp_path / "ada" / "config.json").read_text())
+  assert saved["model"]["final_layer_actions"] is True
+  assert json.loads((tmp_path / "w" / "config.json").read_text())[
+      "model"]["final_layer_actions"] is False
+  # Language-Table by either of IRASim's names: refused in one line, with the reason
+  assert main(["import", "irasim", str(path), "--workdir", str(tmp_path / "lt"), "--dataset",
+               "languagetable", "--config", tiny_config]) == 2
+  assert "language_table models cannot be imported" in capsys.readouterr().err
+  assert not (tmp_path / "lt").exists()
 
 
 def broken(state, key_to_drop, key_to_add, key_to_reshape):

@@ -66,7 +66,6 @@ CODE_OPTIONS = ("model.spatial_sincos_columns_first=True",
                 "model.temporal_sincos_at='first_temporal'",
                 "sampling.context_level=-1", "sampling.context_shares_level=True",
                 "sampling.sampler='pndm_prk'")  # 50 steps, 59 calls: IRASim's evaluation
-FRAME_ADA_OPTIONS = ("model.final_layer_actions=False",)
 # IRASim's dataset names -> configs/irasim.py's; the action scale of each (c_act_scaler) and its
 # gripper dimension.
 DATASETS = {"rt1": "rt1", "bridge": "bridge", "languagetable": "language_table",
@@ -357,10 +356,13 @@ def step_from_path(path: str) -> int:
   return int(digits.group(1)) if digits else 0
 
 
-def import_config(size: str, dataset: str, variant: str,
-                  config_path: str = DEFAULT_CONFIG) -> ml_collections.ConfigDict:
-  """``configs/irasim.py:SIZE,DATASET,VARIANT`` with :data:`CODE_OPTIONS`."""
-  options = CODE_OPTIONS + (FRAME_ADA_OPTIONS if variant == "frame_ada" else ())
+def import_config(size: str, dataset: str, variant: str, config_path: str = DEFAULT_CONFIG,
+                  final_frame_ada: bool = False) -> ml_collections.ConfigDict:
+  """``configs/irasim.py:SIZE,DATASET,VARIANT`` with :data:`CODE_OPTIONS`; a Frame-Ada final
+  layer sees the actions too only with ``final_frame_ada`` (IRASim's option of that name; its
+  published checkpoints were trained without it, and the weights do not tell)."""
+  options = CODE_OPTIONS + ((f"model.final_layer_actions={final_frame_ada}",)
+                            if variant == "frame_ada" else ())
   return load_config(f"{config_path}:{size},{dataset},{variant}", options)
 
 
@@ -377,11 +379,15 @@ def action_stats(dataset: str) -> ActionStats:
 
 
 def convert(path: str, *, dataset: str | None = None, variant: str | None = None,
-            weights: str = "ema", config_path: str = DEFAULT_CONFIG):
+            weights: str = "ema", config_path: str = DEFAULT_CONFIG,
+            final_frame_ada: bool = False):
   """Read and convert an IRASim ``.pt`` file -> ``(config, params, stats, step)``; nothing is
   written. ``dataset`` (rt1, bridge) and ``variant`` (frame_ada, video_ada) default to what the
-  path and the weights say."""
-  dataset = DATASETS.get(dataset, dataset) if dataset else dataset_from_path(path)
+  path and the weights say; ``final_frame_ada`` as in :func:`import_config`."""
+  if dataset is not None and dataset not in DATASETS:
+    raise ValueError(f"dataset must be one of {', '.join(sorted(ACTION_SCALES))} (IRASim's "
+                     f"names), got {dataset!r}")
+  dataset = DATASETS[dataset] if dataset else dataset_from_path(path)
   if dataset is None:
     raise ValueError(f"cannot tell the dataset from {path}: name it (rt1 or bridge)")
   stats = action_stats(dataset)
@@ -390,7 +396,7 @@ def convert(path: str, *, dataset: str | None = None, variant: str | None = None
   state = read_state_dict(path, weights)
   sizes = _config_sizes(config_path)
   arch = infer_architecture(state, sizes, stats.action_dim, variant)
-  config = import_config(arch.size, dataset, arch.variant, config_path)
+  config = import_config(arch.size, dataset, arch.variant, config_path, final_frame_ada)
   network = WorldModel.from_config(config).network
   if arch.num_frames != network.num_frames:
     raise IRASimImportError(f"the checkpoint's window is {arch.num_frames} frames, the "
@@ -450,10 +456,11 @@ def write_workdir(workdir: str, config: ml_collections.ConfigDict, params: dict,
 
 def import_checkpoint(path: str, workdir: str, *, dataset: str | None = None,
                       variant: str | None = None, weights: str = "ema",
-                      config_path: str = DEFAULT_CONFIG) -> ml_collections.ConfigDict:
+                      config_path: str = DEFAULT_CONFIG,
+                      final_frame_ada: bool = False) -> ml_collections.ConfigDict:
   """Convert the IRASim checkpoint ``path`` into a new wmjax ``workdir``; its config."""
   config, params, stats, step = convert(path, dataset=dataset, variant=variant, weights=weights,
-                                        config_path=config_path)
+                                        config_path=config_path, final_frame_ada=final_frame_ada)
   source = dict(checkpoint=os.path.abspath(path), weights=weights, step=step, config=config.name)
   write_workdir(workdir, config, params, stats, step, source)
   return config
