@@ -117,3 +117,6 @@ def test_pixel_and_patch_codecs():
     make_codec(codec_config(kind="jpeg"))
   with pytest.raises(ValueError, match="needs codec.path"):
     make_codec(codec_config(kind="vae"))
+  with pytest.raises(ValueError, match="'/no/sdxl-vae', which is not there; without the VAE, "
+                                       "--config.codec.kind=pixel"):
+    make_codec(codec_config(kind="vae", path="/no/sdxl-vae"))

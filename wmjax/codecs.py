@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 from typing import Any, Protocol
 
 import jax
@@ -171,9 +172,12 @@ def make_codec(config: ml_collections.ConfigDict | None) -> Codec:
     return PatchCodec(int(config.patch_size))
   if kind != "vae":
     raise ValueError(f"codec.kind must be one of {CODECS}, got {kind!r}")
-  if not config.path:
-    raise ValueError("codec.kind='vae' needs codec.path: a diffusers AutoencoderKL folder "
-                     "(config.json + diffusion_pytorch_model.safetensors)")
+  if not config.path or not os.path.exists(os.path.expanduser(config.path)):
+    raise ValueError(f"codec.kind='vae' needs codec.path: a diffusers AutoencoderKL folder "
+                     f"(config.json + diffusion_pytorch_model.safetensors), got "
+                     f"{config.path!r}, which is not there; without the VAE, "
+                     f"--config.codec.kind=pixel (load_model(..., overrides=[\"codec.kind="
+                     f"'pixel'\"])) gives the model alone, on latents")
   module, params = load_diffusers(config.path, jnp.dtype(config.dtype))
   scaling, shift = config.scaling_factor, config.shift_factor
   return VAECodec(module, params,
