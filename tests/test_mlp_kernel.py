@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from test_dit import _model
-from wmjax.nn import kernels
+from conftest import perturbed, tiny_config
+from wmjax.nn import STDiT, kernels
 from wmjax.nn.kernels import mlp as fused
 
 pytestmark = pytest.mark.unit
@@ -83,12 +83,21 @@ def test_remat_keeps_the_fused_pre_activation_under_dots():
   assert kernel_loops("full") > plain
 
 
-def test_model_with_fused_mlp_equals_the_xla_model():
-  """Same parameters, same outputs and gradients; 'auto' is 'xla' off a GPU."""
-  model, params, (x, t, a) = _model("frame")
-  fused_model = model.clone(mlp_kernel="pallas")
-  assert jax.tree.structure(jax.eval_shape(fused_model.init, jax.random.key(0), x, t, a)) == \
-      jax.tree.structure(params)
+def test_model_with_the_fused_kernels_equals_the_xla_model():
+  """The ST-DiT with both fused kernels, the MLP's and the LayerNorm's (test_norm_kernel.py), and
+  remat 'dots': the same parameters, outputs and gradients as with XLA's ops (one model for both
+  kernels: in interpret mode each model compiles for long); 'auto' is 'xla' off a GPU."""
+  model = STDiT(**tiny_config("irasim.py:S").model)
+  fused_model = model.clone(mlp_kernel="pallas", norm_kernel="pallas")
+  k = jax.random.split(jax.random.key(0), 4)
+  x = jax.random.normal(k[0], (2, 2, 4, 4, 4))
+  t = jax.random.uniform(k[1], (2, 2), maxval=999.0)
+  a = jax.random.normal(k[2], (2, 1, 7))
+  # the parameter tree does not depend on the kernel choice
+  shapes = jax.eval_shape(model.init, k[3], x, t, a)
+  assert jax.eval_shape(fused_model.init, k[3], x, t, a) == shapes
+  # random parameters everywhere (no zero-initialised adaLN), without compiling an init
+  params = perturbed(jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes), k[3])
   probe = jax.random.normal(jax.random.key(2), x.shape)
   loss = lambda m: jax.jit(jax.value_and_grad(lambda p: jnp.mean(m.apply(p, x, t, a) * probe)))
   got, got_grads = loss(fused_model.clone(remat="dots"))(params)
