@@ -79,9 +79,27 @@ def tiny_world_model(config: str = "irasim.py:S", *overrides: str, frame_shape=(
 
 TIERS = ("unit", "integration")
 
+# The README's test command gives each pytest-xdist worker whole modules (--dist loadfile), by
+# default the modules with the most tests first, which leaves the few long modules (the overfit
+# test, the notebooks) to the end, on one worker while the other idles. The longest modules go
+# first instead (the 2026-11-26 durations in benchmarks/RESULTS.md), the others after them in
+# file order.
+LONGEST_MODULES = ("test_pusht.py", "test_fit.py", "test_notebooks.py", "test_recipes.py",
+                   "test_dit.py", "test_train.py", "test_run_integrity.py", "test_train_loop.py",
+                   "test_overfit.py", "test_documentation.py", "test_evaluate.py",
+                   "test_rollout.py")
+
+
+def pytest_configure(config):
+  if hasattr(config.option, "loadscopereorder"):  # pytest-xdist's reordering by test count
+    config.option.loadscopereorder = False
+
 
 def pytest_collection_modifyitems(config, items):
-  """Every test sits in exactly one tier (pyproject.toml registers the markers)."""
+  """Every test sits in exactly one tier (pyproject.toml registers the markers); the longest
+  modules run first."""
+  first = {name: rank for rank, name in enumerate(LONGEST_MODULES)}
+  items.sort(key=lambda item: first.get(item.path.name, len(first)))  # stable: file order after
   untiered = [item.nodeid for item in items
               if sum(item.get_closest_marker(tier) is not None for tier in TIERS) != 1]
   if untiered:
