@@ -57,6 +57,7 @@ def grid(tmp_path_factory):
   return gridworld.prepare(str(tmp_path_factory.mktemp("grid")), config)
 
 
+@pytest.mark.slow
 def test_statistics_are_per_split(grid):
   """Failure 1: the test split's statistics were the train split's; train[:2] counted every
   train episode."""
@@ -318,6 +319,7 @@ def write_lerobot(root, version):
 
 
 @pytest.mark.parametrize("version", ["v2", "v3"])
+@pytest.mark.slow
 def test_lerobot_import(tmp_path, version, monkeypatch):
   src = tmp_path / "src"
   cameras = write_lerobot(src, version)

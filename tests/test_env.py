@@ -27,6 +27,7 @@ def _setup(b=2, c=2):
   return wm, params, context, raw
 
 
+@pytest.mark.slow
 def test_raw_actions_are_normalised_with_the_checkpoint_statistics():
   wm, params, context, raw = _setup()
   stats = _stats(7)
@@ -45,6 +46,7 @@ def test_raw_actions_are_normalised_with_the_checkpoint_statistics():
   assert float(jnp.abs(unnormalised - expected).max()) > 1e-3
 
 
+@pytest.mark.slow
 def test_context_grows_to_its_length_and_keeps_known_actions():
   """Started from one frame, the window grows to c frames; the actions between them are known."""
   wm, params, context, raw = _setup(b=1, c=1)

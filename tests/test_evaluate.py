@@ -116,6 +116,7 @@ def _loaded(wm, params, config_name="irasim.py:S"):
 
 
 @pytest.mark.unit
+@pytest.mark.slow
 def test_run_rollouts_scores_only_real_frames():
   """Trajectories of different lengths padded together: frames past the end are NaN, the copy-last
   baseline is exact, and the mean of a trajectory covers its own frames only."""
@@ -185,6 +186,7 @@ def workdir(trained_workdir):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_load_model_reads_ema_or_raw_parameters(workdir):
   ema = load_model(workdir)
   raw = load_model(workdir, params="raw", step=2, overrides=["sampling.num_steps=3"])
@@ -204,6 +206,7 @@ def test_load_model_reads_ema_or_raw_parameters(workdir):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_evaluate_command_writes_metrics_report_and_videos(workdir, tmp_path):
   out = tmp_path / "eval"
   assert cli.main(["evaluate", "--workdir", workdir, "--out", str(out), "--sets", "2",
@@ -231,6 +234,7 @@ def test_evaluate_command_writes_metrics_report_and_videos(workdir, tmp_path):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_short_protocol_chains_blocks_beyond_the_window(workdir, tmp_path):
   """``rollout.short_actions`` longer than the 6-frame window: 1 frame + 7 actions, generated in
   chained blocks of 5, every one of the 7 frames scored."""
@@ -251,6 +255,7 @@ def test_short_protocol_chains_blocks_beyond_the_window(workdir, tmp_path):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_rollout_command_applies_the_checkpoint_normalisation(workdir, tmp_path, capsys):
   model = load_model(workdir)
   config = gridworld.GridworldConfig(num_squares=2, image_size=16, square_size=4)

@@ -73,6 +73,7 @@ def assert_same_params(a, b):
 
 @pytest.mark.unit
 @pytest.mark.parametrize("variant", ["frame_ada", "video_ada"])
+@pytest.mark.slow
 def test_round_trip_gives_the_same_parameters_and_outputs(tiny_config, variant):
   network = network_of(tiny_config, variant)
   params = random_params(network, seed=3)

@@ -83,6 +83,7 @@ def test_remat_keeps_the_fused_pre_activation_under_dots():
   assert kernel_loops("full") > plain
 
 
+@pytest.mark.slow
 def test_model_with_the_fused_kernels_equals_the_xla_model():
   """The ST-DiT with both fused kernels, the MLP's and the LayerNorm's (test_norm_kernel.py), and
   remat 'dots': the same parameters, outputs and gradients as with XLA's ops (one model for both

@@ -75,6 +75,7 @@ def _tiny_stdit(norm_kernel):
   return STDiT(**config.model)
 
 
+@pytest.mark.slow
 def test_kernel_runs_once_per_device_under_a_mesh(monkeypatch):
   """XLA cannot partition a Pallas call: under a mesh the frames' batch is split over the batch
   axes with shard_map, D stays whole, and values and gradients are unchanged."""

@@ -72,6 +72,7 @@ def _patched_step(nan_from=None, then=None):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_sigterm_never_saves_a_nan_state(data_dir, tmp_path, monkeypatch):
   """1: SIGTERM after the state went NaN (no loss was checked: log_every is large) saves
   nothing, and the message does not claim a checkpoint that does not exist (8)."""
@@ -90,6 +91,7 @@ def test_sigterm_never_saves_a_nan_state(data_dir, tmp_path, monkeypatch):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_nan_on_a_fresh_run_names_no_checkpoint_and_advises_tighter_clipping(data_dir, tmp_path,
                                                                              monkeypatch):
   """8: the loss goes NaN before any checkpoint: the advice is a smaller grad_clip."""
@@ -110,6 +112,7 @@ def test_nan_on_a_fresh_run_names_no_checkpoint_and_advises_tighter_clipping(dat
 
 @pytest.mark.integration
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=lambda s: s.name)
+@pytest.mark.slow
 def test_a_signal_saves_and_exits_128_plus_its_number(data_dir, tmp_path, monkeypatch, capsys,
                                                      signum):
   """10: Ctrl-C (SIGINT) and a scheduler's SIGTERM save the current step and make `wmjax train`
@@ -131,6 +134,7 @@ def test_a_signal_saves_and_exits_128_plus_its_number(data_dir, tmp_path, monkey
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_resume_refuses_a_changed_config_and_keeps_config_json(trained_copy, data_dir):
   """2: a changed objective is refused with the differing key; config.json is untouched."""
   before = (trained_copy / "config.json").read_text()
@@ -142,6 +146,7 @@ def test_resume_refuses_a_changed_config_and_keeps_config_json(trained_copy, dat
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_config_changes_safe_on_resume_or_named_are_accepted_and_recorded(trained_copy, data_dir):
   """2: train.num_steps is always accepted, a named change is accepted, both are recorded."""
   config = gridworld_config(data_dir, **{"optim.learning_rate": 1e-3, "train.num_steps": 5})
@@ -155,6 +160,7 @@ def test_config_changes_safe_on_resume_or_named_are_accepted_and_recorded(traine
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_shape_change_on_resume_is_one_clear_error(trained_copy, data_dir, capfd):
   """3: a wider model stops at once with one message naming the key, no traceback."""
   assert _cli_train(trained_copy, data_dir, **{"model.hidden_size": 64}) == 1
@@ -196,6 +202,7 @@ def test_unknown_config_keys_and_unshardable_meshes_fail_early(data_dir, tmp_pat
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_a_failed_background_save_stops_training_at_once(data_dir, tmp_path, monkeypatch):
   """4: the disk fills up while checkpoint 4 is written in the background: training stops
   before the next checkpoint is due, with a one-line message; checkpoint 2 stays, the partial
@@ -252,6 +259,7 @@ def test_checkpointer_poll_raises_once_the_failed_save_has_finished(tmp_path, mo
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_damaged_latest_checkpoint_falls_back_with_a_warning(trained_copy, data_dir, capfd):
   """5: a truncated array file of checkpoint 4: the run resumes from 2, says so naming both,
   and keeps the damaged checkpoint aside; reading it for inference names the file and --step."""
@@ -275,6 +283,7 @@ def test_damaged_latest_checkpoint_falls_back_with_a_warning(trained_copy, data_
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_batches_do_not_depend_on_the_number_of_workers(data_dir):
   """6: batch k is the same with 0 or 2 worker processes, and ``start`` skips to it."""
   builder_dir = gridworld.prepare(str(data_dir), gridworld.GridworldConfig(
@@ -298,6 +307,7 @@ def test_batches_do_not_depend_on_the_number_of_workers(data_dir):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_resume_with_more_workers_logs_each_step_once_and_cleans_up(trained_copy, data_dir):
   """6, 7, 9: the run died after logging step 4 but before checkpoint 4 completed, leaving a
   temporary checkpoint and a stale lock; it resumes from 2 with 2 data workers, reads the same
@@ -412,6 +422,7 @@ print("started" if started else "not started")
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_a_machine_without_tpu_chips_starts_no_tpu_client():
   """libtpu (the test extra) makes JAX start a TPU client everywhere, and libtpu then prints
   INVALID_ARGUMENT lines on a CPU host; the CLI leaves the TPU out when the machine has none."""

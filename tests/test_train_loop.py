@@ -122,6 +122,7 @@ def test_launcher_stops_every_process_when_one_fails(tmp_path):
   assert time.time() - start < 60
 
 
+@pytest.mark.slow
 def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(data_dir, tmp_path, monkeypatch):
   """From step 4 on the step returns NaN parameters and loss (as a diverged run would)."""
   real_step = ShardedTrainer.step
