@@ -60,6 +60,7 @@ def test_context_grows_to_its_length_and_keeps_known_actions():
   assert env.video().shape == (1, 4, 8, 8, 16)
 
 
+@pytest.mark.slow
 def test_rewards_truncation_and_uint8_frames():
   wm, params = tiny_world_model("irasim.py:S", "sampling.num_steps=2", "model.in_channels=3",
                                 frame_shape=(8, 8, 3))

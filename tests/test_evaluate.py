@@ -287,6 +287,7 @@ def test_rollout_command_applies_the_checkpoint_normalisation(workdir, tmp_path,
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_checkpoints_from_before_a_config_field_take_its_override(workdir, tmp_path):
   """A checkpoint whose stored config predates sampling.kv_cache and model.attention_impl loads
   with their defaults, and the new fields can be overridden."""

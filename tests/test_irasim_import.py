@@ -91,6 +91,7 @@ def test_round_trip_gives_the_same_parameters_and_outputs(tiny_config, variant):
 
 
 @pytest.mark.unit
+@pytest.mark.slow
 def test_query_key_value_split_follows_irasims_head_layout(tiny_config):
   """IRASim reshapes qkv(x) to [B, N, 3, heads, d]: rows [k*D + h*d, k*D + (h+1)*d) of the fused
   weight are head h of q (k=0), k (k=1) or v (k=2)."""

@@ -70,6 +70,7 @@ def test_rollout_sharded_over_the_batch_equals_unsharded():
                              rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_context_actions_condition_the_first_block():
   wm, params = tiny_world_model("wpe_600m.py", "sampling.num_steps=2", frame_shape=(8, 8, 16))
   context, actions = _inputs(wm, 1, 3, 4, channels=16)
@@ -91,6 +92,7 @@ def test_padding_does_not_change_earlier_frames_of_a_causal_model():
   np.testing.assert_allclose(short, full[:, :7], rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_guidance_combines_conditional_and_null_outputs():
   wm, params = tiny_world_model("irasim.py:S", "sampling.guidance_scale=3.0")
   x = jax.random.normal(jax.random.key(0), (2, 4, 8, 8, 4))

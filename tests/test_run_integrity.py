@@ -343,6 +343,7 @@ def test_a_second_trainer_in_the_workdir_is_refused(data_dir, tmp_path):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_commands_refuse_unknown_flags_and_out_of_range_inputs(trained_workdir, tmp_path, capsys):
   """11: unknown flags, --horizon 0, ambiguous float frames and absurd actions are errors."""
   with pytest.raises(SystemExit) as exit_:
