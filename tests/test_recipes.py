@@ -84,7 +84,8 @@ TRAINED_ELSEWHERE = {
     "gridworld.py": "test_train_loop.py, test_overfit.py and the quickstart",
     "pusht.py:cpu": "test_pusht.py (the experiment fixture trains it)",
     "pusht.py:h100": "test_pusht.py::test_h100_profile_trains_one_step",
-    "rlds.py": "test_recipes.py::test_rlds_config_trains_on_three_episodes_with_its_default_splits",
+    "rlds.py": "test_data_specs.py::test_own_lerobot_data_from_import_to_evaluation (inspect's "
+               "command)",
 }
 
 
@@ -166,21 +167,21 @@ def test_pre_encoded_latents_train_like_frames(assets, tmp_path, capsys):
   assert not os.path.exists(str(out) + ".incomplete")
 
 
-def test_rlds_config_trains_on_three_episodes_with_its_default_splits(assets, tmp_path, capsys):
-  """configs/rlds.py as the README's own-data command runs it: 2-frame windows of its own, and
-  its default splits (train[:90%] / train[90%:]) hold out one of three episodes."""
+def test_rlds_config_reads_three_episodes_with_its_default_splits(assets):
+  """configs/rlds.py as the README's own-data command sets it up: 2-frame windows of its own, and
+  its default splits (train[:90%] / train[90%:]) hold out one of three episodes. The same config
+  trains and evaluates from the command line in
+  test_data_specs.py::test_own_lerobot_data_from_import_to_evaluation."""
   builder = assets[0]["fractal20220817_data"]
-  overrides = [f"--config.{k}={v!r}" for k, v in {
+  config = load_config(str(ROOT / "configs" / "rlds.py"), [f"{k}={v!r}" for k, v in {
       "data.builder_dir": builder, "data.dataset": "fractal20220817_data",
-      "model.action_dim": 7, "data.resolution": (16, 16), "frame_shape": (16, 16, 3),
-      "model.depth": 2, "model.hidden_size": 32, "model.num_heads": 2, "batch_size": 8,
-      "train.num_steps": 1, "train.eval_every": 1, "train.eval_windows": 2}.items()]
-  assert cli.main(["train", "--config", str(ROOT / "configs" / "rlds.py"), "--workdir",
-                   str(tmp_path)] + overrides) == 0
-  result = json.loads((tmp_path / "metrics.json").read_text())
-  assert result["step"] == 1 and np.isfinite(result["val_loss"])
-  assert len(ArrayRecordEpisodes(builder, "train[90%:]")) == 1
-  assert len(ArrayRecordEpisodes(builder, "train[:90%]")) == 2
+      "model.action_dim": 7, "data.resolution": (16, 16), "frame_shape": (16, 16, 3)}.items()])
+  data = build_data(config)  # what `wmjax train` checks against the model before compiling
+  (member,) = data.members
+  assert member.spec.name == "fractal20220817_data" and member.spec.action_dim == 7
+  assert len(member.train.episodes) == 2 and len(member.eval.episodes) == 1
+  assert member.train[0]["frames"].shape == (2, 16, 16, 3)
+  assert eval_windows(data, config)["frames"].shape[1:] == (2, 16, 16, 3)
 
 
 def test_every_shipped_config_is_trained_by_a_test():
