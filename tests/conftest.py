@@ -155,12 +155,15 @@ def data_dir(tmp_path_factory):
 
 
 def gridworld_overrides(data_dir, **extra) -> list[str]:
-  """``key=value`` overrides of configs/gridworld.py for a tiny run on ``data_dir``: 6-frame
-  windows rolled out 1 + 5, 4 steps of batch 8, checkpoints 2 and 4, every step logged, no
-  evaluation in the loop; ``extra`` changes or adds keys."""
+  """``key=value`` overrides of configs/gridworld.py for a tiny run on ``data_dir`` (the
+  ``data_dir`` fixture's ``GRIDWORLD_DATA``): 6-frame windows rolled out 1 + 5, 4 steps of batch
+  8, checkpoints 2 and 4, every step logged, no evaluation in the loop; ``extra`` changes or adds
+  keys."""
   values = {
-      "data.data_dir": repr(str(data_dir)), "data.gridworld.train_episodes": 16,
-      "data.gridworld.test_episodes": 2, "data.gridworld.episode_length": 12,
+      "data.data_dir": repr(str(data_dir)),
+      "data.gridworld.train_episodes": GRIDWORLD_DATA.train_episodes,
+      "data.gridworld.test_episodes": GRIDWORLD_DATA.test_episodes,
+      "data.gridworld.episode_length": GRIDWORLD_DATA.episode_length,
       "model.depth": 2, "model.hidden_size": 32, "model.num_heads": 2, "model.patch_size": 4,
       "model.num_frames": 6, "data.frames": 6, "rollout.horizon": 5,
       "rollout.short_actions": None, "batch_size": 8, "train.num_steps": 4,

@@ -18,7 +18,8 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
-from conftest import gridworld_config, gridworld_overrides, one_line_error, tiny_config
+from conftest import (GRIDWORLD_DATA, gridworld_config, gridworld_overrides, one_line_error,
+                      tiny_config)
 from wmjax import cli, parallel
 from wmjax.config import ConfigError, load_config
 from wmjax.data.pipeline import WindowSource, training_pipeline
@@ -286,8 +287,7 @@ def test_damaged_latest_checkpoint_falls_back_with_a_warning(trained_copy, data_
 @pytest.mark.slow
 def test_batches_do_not_depend_on_the_number_of_workers(data_dir):
   """6: batch k is the same with 0 or 2 worker processes, and ``start`` skips to it."""
-  builder_dir = gridworld.prepare(str(data_dir), gridworld.GridworldConfig(
-      train_episodes=16, test_episodes=2, episode_length=12))
+  builder_dir = gridworld.prepare(str(data_dir), GRIDWORLD_DATA)
   source = WindowSource(ArrayRecordEpisodes(builder_dir, "train"), 6, 1, None)
   stats = [action_stats(builder_dir)]
 
