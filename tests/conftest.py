@@ -3,6 +3,7 @@
 Tests run on 8 simulated CPU devices so that sharding is exercised.
 """
 
+import fcntl
 import functools
 import os
 import shutil
@@ -42,6 +43,7 @@ from jax import flatten_util  # noqa: E402
 from wmjax.config import load_config  # noqa: E402
 from wmjax.model import WorldModel  # noqa: E402
 from wmjax.tasks.gridworld import dataset as gridworld  # noqa: E402
+from wmjax.train.loop import train  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -77,9 +79,27 @@ def tiny_world_model(config: str = "irasim.py:S", *overrides: str, frame_shape=(
 
 TIERS = ("unit", "integration")
 
+# The README's test command gives each pytest-xdist worker whole modules (--dist loadfile), by
+# default the modules with the most tests first, which leaves the few long modules (the overfit
+# test, the notebooks) to the end, on one worker while the other idles. The longest modules go
+# first instead (the 2026-11-26 durations in benchmarks/RESULTS.md), the others after them in
+# file order.
+LONGEST_MODULES = ("test_pusht.py", "test_fit.py", "test_notebooks.py", "test_recipes.py",
+                   "test_dit.py", "test_train.py", "test_run_integrity.py", "test_train_loop.py",
+                   "test_overfit.py", "test_documentation.py", "test_evaluate.py",
+                   "test_rollout.py")
+
+
+def pytest_configure(config):
+  if hasattr(config.option, "loadscopereorder"):  # pytest-xdist's reordering by test count
+    config.option.loadscopereorder = False
+
 
 def pytest_collection_modifyitems(config, items):
-  """Every test sits in exactly one tier (pyproject.toml registers the markers)."""
+  """Every test sits in exactly one tier (pyproject.toml registers the markers); the longest
+  modules run first."""
+  first = {name: rank for rank, name in enumerate(LONGEST_MODULES)}
+  items.sort(key=lambda item: first.get(item.path.name, len(first)))  # stable: file order after
   untiered = [item.nodeid for item in items
               if sum(item.get_closest_marker(tier) is not None for tier in TIERS) != 1]
   if untiered:
@@ -106,14 +126,102 @@ def _free_compiled_programs():
   jax.clear_caches()
 
 
+def built_once(tmp_path_factory, name: str, build) -> Path:
+  """The directory ``name`` that ``build(path)`` fills once per test run, shared by every test
+  and by both pytest-xdist workers: the first to ask builds it under a file lock in the run's
+  temporary directory, the others wait and reuse it. Read-only for the tests."""
+  base = tmp_path_factory.getbasetemp()
+  if os.environ.get("PYTEST_XDIST_WORKER"):
+    base = base.parent  # the run's directory, above each worker's own
+  path, built = base / name, base / f"{name}.built"
+  with open(base / f"{name}.lock", "w") as lock:
+    fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+    if not built.exists():
+      shutil.rmtree(path, ignore_errors=True)  # what a failed build left
+      build(path)
+      built.touch()
+  return path
+
+
+GRIDWORLD_DATA = gridworld.GridworldConfig(train_episodes=16, test_episodes=2, episode_length=12)
+
+
 @pytest.fixture(scope="session")
 def data_dir(tmp_path_factory):
   """A small gridworld (16 train, 2 test episodes of 12 steps) for training-loop tests; built
-  once per run (and per xdist worker), read-only for the tests."""
-  path = tmp_path_factory.mktemp("data")
-  gridworld.prepare(str(path), gridworld.GridworldConfig(train_episodes=16, test_episodes=2,
-                                                         episode_length=12))
-  return path
+  once per run, read-only for the tests."""
+  return built_once(tmp_path_factory, "gridworld-data",
+                    lambda path: gridworld.prepare(str(path), GRIDWORLD_DATA))
+
+
+def gridworld_overrides(data_dir, **extra) -> list[str]:
+  """``key=value`` overrides of configs/gridworld.py for a tiny run on ``data_dir`` (the
+  ``data_dir`` fixture's ``GRIDWORLD_DATA``): 6-frame windows rolled out 1 + 5, 4 steps of batch
+  8, checkpoints 2 and 4, every step logged, no evaluation in the loop; ``extra`` changes or adds
+  keys."""
+  values = {
+      "data.data_dir": repr(str(data_dir)),
+      "data.gridworld.train_episodes": GRIDWORLD_DATA.train_episodes,
+      "data.gridworld.test_episodes": GRIDWORLD_DATA.test_episodes,
+      "data.gridworld.episode_length": GRIDWORLD_DATA.episode_length,
+      "model.depth": 2, "model.hidden_size": 32, "model.num_heads": 2, "model.patch_size": 4,
+      "model.num_frames": 6, "data.frames": 6, "rollout.horizon": 5,
+      "rollout.short_actions": None, "batch_size": 8, "train.num_steps": 4,
+      "train.log_every": 1, "train.checkpoint_every": 2, "train.eval_every": 0,
+      "train.eval_windows": 2, "sampling.num_steps": 2, "optim.warmup_steps": 1,
+      "optim.total_steps": 4}
+  values.update(extra)
+  return [f"{k}={v}" for k, v in values.items()]
+
+
+def gridworld_config(data_dir, **extra):
+  return load_config(str(ROOT / "configs" / "gridworld.py"), gridworld_overrides(data_dir, **extra))
+
+
+@pytest.fixture(scope="session")
+def trained_workdir(data_dir, tmp_path_factory):
+  """The workdir of ``gridworld_config(data_dir)`` trained (checkpoints 2 and 4): once per test
+  run for every test that needs *a* trained model. Read-only: a test that writes into a workdir
+  takes ``trained_copy``."""
+  path = built_once(tmp_path_factory, "gridworld-trained",
+                    lambda path: train(gridworld_config(data_dir), str(path)))
+  before = _files(path)
+  yield path
+  assert _files(path) == before, "a test wrote into trained_workdir (take trained_copy)"
+
+
+def _files(root: Path) -> dict[str, tuple[int, int]]:
+  """Every file under ``root``: its size and modification time."""
+  return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
+          for p in root.rglob("*") if p.is_file()}
+
+
+@pytest.fixture
+def trained_copy(trained_workdir, tmp_path):
+  """A copy of ``trained_workdir`` of the test's own, to resume, damage or write into."""
+  return shutil.copytree(trained_workdir, tmp_path / "run")
+
+
+# the widths and steps the own-data tests add to the training command `wmjax data inspect` prints
+OWN_DATA_TINY = {"data.resolution": (16, 16), "frame_shape": (16, 16, 3), "model.depth": 2,
+                 "model.hidden_size": 32, "model.num_heads": 2, "batch_size": 8,
+                 "train.num_steps": 1, "train.eval_every": 0}
+
+
+def inspected_command(capsys, builder_dir: str, workdir: str) -> tuple[str, list[str]]:
+  """``wmjax data inspect BUILDER_DIR``: what it printed, and the ``wmjax train`` command it ends
+  with for ``workdir`` (its config file made absolute, as from the repository root)."""
+  import shlex
+
+  from wmjax import cli
+  capsys.readouterr()
+  assert cli.main(["data", "inspect", builder_dir]) == 0
+  printed = capsys.readouterr().out
+  command = shlex.split(printed.splitlines()[-1].replace("WORKDIR", workdir))
+  assert command[:2] == ["wmjax", "train"]
+  at = command.index("--config") + 1
+  command[at] = str(ROOT / command[at])
+  return printed, command
 
 
 def one_line_error(capsys, argv: list[str], pattern: str) -> str:

@@ -59,6 +59,7 @@ def test_splash_equals_xla(lq, lk, causal):
                              attend(q, k, v, causal=causal, backend="xla"), atol=2e-5)
 
 
+@pytest.mark.slow
 def test_splash_equals_xla_in_bfloat16_and_in_gradients():
   q, k, v = _qkv(200, 200, dtype=jnp.bfloat16)
   got = attend(q, k, v, causal=True, backend="splash")

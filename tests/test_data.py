@@ -42,6 +42,7 @@ def grid(tmp_path_factory):
 
 @pytest.mark.integration
 @pytest.mark.parametrize("name", sorted(oxe_fixtures.FEATURES))
+@pytest.mark.slow
 def test_both_read_paths_yield_identical_windows(oxe_data, name, caplog):
   tfrecord_dir, array_record_dir = oxe_data[name]
   episodes = ArrayRecordEpisodes(array_record_dir, "train")
@@ -136,6 +137,7 @@ def test_converted_equals_written_by_tfds_as_array_record(oxe_data, tmp_path):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_worker_processes_yield_the_same_batches(grid):
   builder_dir, _ = grid
   source = WindowSource(ArrayRecordEpisodes(builder_dir, "train"), 6, 1, None)

@@ -17,7 +17,7 @@ from PIL import Image
 from tensorflow_datasets.core import file_adapters
 
 import oxe_fixtures
-from conftest import ROOT, one_line_error
+from conftest import OWN_DATA_TINY, ROOT, inspected_command, one_line_error
 from wmjax.data import oxe
 from wmjax.data.convert import convert_to_array_record
 from wmjax.data.lerobot import import_lerobot
@@ -59,6 +59,7 @@ def grid(tmp_path_factory):
   return gridworld.prepare(str(tmp_path_factory.mktemp("grid")), config)
 
 
+@pytest.mark.slow
 def test_statistics_are_per_split(grid):
   """Failure 1: the test split's statistics were the train split's; train[:2] counted every
   train episode."""
@@ -406,6 +407,7 @@ def write_lerobot(root, version):
 
 
 @pytest.mark.parametrize("version", ["v2", "v3"])
+@pytest.mark.slow
 def test_lerobot_import(tmp_path, version, monkeypatch):
   src = tmp_path / "src"
   cameras = write_lerobot(src, version)
@@ -461,24 +463,14 @@ def test_lerobot_import(tmp_path, version, monkeypatch):
 def test_own_lerobot_data_from_import_to_evaluation(tmp_path, capsys):
   """The README's own-data path as a newcomer runs it: import, inspect, the training command
   inspect prints (at tiny widths), evaluate on the held-out split the config names."""
-  import shlex
-
   from wmjax import cli
   src, out, workdir = tmp_path / "src", str(tmp_path / "data"), str(tmp_path / "run")
   write_lerobot(src, "v3")
   assert cli.main(["data", "import", "lerobot", str(src), out]) == 0
-  capsys.readouterr()
-  assert cli.main(["data", "inspect", out]) == 0
-  printed = capsys.readouterr().out
+  printed, command = inspected_command(capsys, out, workdir)
   assert "this is the built-in 'lerobot' spec (2-dim actions" in printed
-  command = shlex.split(printed.splitlines()[-1].replace("WORKDIR", workdir))
-  assert command[:2] == ["wmjax", "train"] and "--config.model.action_dim=2" in command
-  config_file = command[command.index("--config") + 1]
-  command[command.index("--config") + 1] = os.path.join(os.path.dirname(__file__), "..", config_file)
-  tiny = {"data.resolution": (16, 16), "frame_shape": (16, 16, 3), "model.depth": 2,
-          "model.hidden_size": 32, "model.num_heads": 2, "batch_size": 8, "train.num_steps": 1,
-          "train.eval_every": 0}
-  assert cli.main(command[1:] + [f"--config.{k}={v!r}" for k, v in tiny.items()]) == 0
+  assert "--config.model.action_dim=2" in command
+  assert cli.main(command[1:] + [f"--config.{k}={v!r}" for k, v in OWN_DATA_TINY.items()]) == 0
   capsys.readouterr()
   assert cli.main(["evaluate", "--workdir", workdir, "--protocols", "long",
                    "--videos", "0"]) == 0

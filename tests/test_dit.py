@@ -49,6 +49,7 @@ def _model(cond="frame", **kw):
 
 
 @pytest.mark.parametrize("cond", ["frame", "per_frame"])
+@pytest.mark.slow
 def test_action_j_conditions_frame_j_plus_1_only(cond):
   """Causal temporal mask: changing action j changes no frame before j+1, and does change j+1."""
   model, params, (x, t, a) = _model(cond)
@@ -79,6 +80,7 @@ def test_frame_zero_and_masked_frames_use_null_embedding():
   np.testing.assert_allclose(dropped[1], spatial[1], rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_video_mode_conditions_every_frame_on_the_whole_trajectory():
   model, params, (x, t, a) = _model("video")
   apply = jit_apply(model)
@@ -88,6 +90,7 @@ def test_video_mode_conditions_every_frame_on_the_whole_trajectory():
   assert float(diff.min()) > 1e-4  # even frame 0, despite the causal mask
 
 
+@pytest.mark.slow
 def test_trajectory_in_temporal_variant_reaches_earlier_frames():
   model, params, (x, t, a) = _model("frame", trajectory_in_temporal=True)
   apply = jit_apply(model)
@@ -96,6 +99,7 @@ def test_trajectory_in_temporal_variant_reaches_earlier_frames():
   assert float(jnp.abs(out - base)[:, 0].max()) > 1e-4
 
 
+@pytest.mark.slow
 def test_action_dropout_in_training_uses_null_embedding():
   model, params, (x, t, a) = _model("frame", action_dropout=1.0)
   apply = jit_apply(model)
@@ -145,6 +149,7 @@ def test_scanned_and_unrolled_layers_agree():
 
 
 @pytest.mark.parametrize("policy", ["full", "dots", "dots_all"])
+@pytest.mark.slow
 def test_remat_policies_change_nothing_but_memory(policy):
   model, params, (x, t, a) = _model("frame")
   rematted = model.clone(remat=policy)
@@ -159,6 +164,7 @@ def test_remat_policies_change_nothing_but_memory(policy):
     model.clone(remat="some").apply(params, x, t, a)
 
 
+@pytest.mark.slow
 def test_bf16_compute_keeps_float32_params():
   model, params, (x, t, a) = _model("frame")
   bf16 = model.clone(dtype="bfloat16")
@@ -177,6 +183,7 @@ def test_rope_positions_run(fields):
   assert out.shape == x.shape and bool(jnp.isfinite(out).all())
 
 
+@pytest.mark.slow
 def test_sincos_plus_rope_is_both_positions():
   """The position schemes have no parameters: one set of weights runs under each, and
   'sincos+rope' gives neither the sin-cos-only nor the RoPE-only output."""
@@ -221,6 +228,7 @@ def test_fourier_action_features_are_the_action_and_its_sines_and_cosines():
 
 @pytest.mark.parametrize("cond,fourier", [("frame", 0), ("video", 0), ("per_frame", 0),
                                           ("per_frame", 3)])
+@pytest.mark.slow
 def test_flop_counter_matches_xla(cond, fourier):
   model = STDiT(in_channels=4, patch_size=2, depth=4, hidden_size=256, num_heads=4,
                 num_frames=8, action_dim=7, cond=cond, action_fourier_features=fourier,
@@ -279,6 +287,7 @@ def _cached_output(model, params, x, t, a, c, mask=None, drop=None):
     ("per_frame", dict(temporal_first=True, spatial_pos="rope", temporal_pos="rope"), 2),
     ("per_frame", dict(temporal_first=True, spatial_pos="sincos+rope"), 2),
 ])
+@pytest.mark.slow
 def test_extend_after_the_cached_context_equals_the_whole_window(cond, fields, c):
   model, params, (x, t, a) = _model(cond, **fields)
   mask = jnp.asarray([[True] * 5, [True, False, True, True, False]])
@@ -315,6 +324,7 @@ def test_kv_cache_inputs_are_checked():
                      method="extend")
 
 
+@pytest.mark.slow
 def test_sampling_flops_count_a_cached_context_once(capsys):
   from wmjax import cli
   from wmjax.rollout import block_flops
@@ -334,6 +344,7 @@ def test_sampling_flops_count_a_cached_context_once(capsys):
   assert reports[0]["gflop_per_generated_frame"] < 0.6 * reports[1]["gflop_per_generated_frame"]
 
 
+@pytest.mark.slow
 def test_temporal_first_changes_the_block_order_not_the_parameters():
   model, params, (x, t, a) = _model("per_frame")
   reordered = model.clone(temporal_first=True)

@@ -1,6 +1,7 @@
 """The code users copy: the README's library section's Python blocks run, in order, in one
-namespace, as a reader pastes them, and every script in examples/ runs, at tiny settings, on a
-tiny gridworld model standing in for the quickstart's, so that none of it can rot."""
+namespace, as a reader pastes them, and every script in examples/ runs, at tiny settings, on the
+suite's tiny gridworld model (conftest.py) standing in for the quickstart's, so that none of it
+can rot."""
 
 import os
 import re
@@ -9,9 +10,7 @@ import runpy
 import numpy as np
 import pytest
 
-from conftest import ROOT
-from wmjax.config import load_config
-from wmjax.train.loop import train
+from conftest import ROOT, gridworld_overrides
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -25,19 +24,13 @@ def python_blocks(section: str) -> list[str]:
 
 
 @pytest.fixture(scope="module")
-def readers_directory(tmp_path_factory):
-  """A directory with ``configs/`` and ``workdirs/gridworld``: a tiny gridworld model of the
-  quickstart's recipe (1 context frame, 1-frame blocks) with 4 held-out episodes of 10 steps."""
+def readers_directory(trained_workdir, tmp_path_factory):
+  """A directory with ``configs/`` and ``workdirs/gridworld``, as after the README quickstart:
+  here the suite's tiny gridworld model (conftest.py; 2 held-out episodes of 12 steps)."""
   root = tmp_path_factory.mktemp("reader")
-  overrides = {
-      "data.data_dir": str(root / "data"), "data.gridworld.train_episodes": 8,
-      "data.gridworld.test_episodes": 4, "data.gridworld.episode_length": 10,
-      "model.hidden_size": 32, "model.depth": 2, "model.num_heads": 2, "batch_size": 8,
-      "train.num_steps": 2, "train.checkpoint_every": 2, "train.eval_every": 0}
-  config = load_config(str(ROOT / "configs" / "gridworld.py"),
-                       [f"{k}={v!r}" for k, v in overrides.items()])
-  train(config, str(root / "workdirs" / "gridworld"))
   os.symlink(ROOT / "configs", root / "configs")
+  (root / "workdirs").mkdir()
+  os.symlink(trained_workdir, root / "workdirs" / "gridworld")
   return root
 
 
@@ -52,8 +45,8 @@ def test_the_library_section_runs_as_written(readers_directory, monkeypatch):
     except Exception as error:
       raise AssertionError(f"README library block {number} fails:\n{block}") from error
   # what the blocks say they make
-  assert namespace["latents"].shape == (4, 10, 16, 16, 3)     # rollout of the held-out episodes
-  assert namespace["env"].video().shape == (4, 9, 16, 16, 3)  # closed loop, 8 steps
+  assert namespace["latents"].shape == (2, 12, 16, 16, 3)     # rollout of the held-out episodes
+  assert namespace["env"].video().shape == (2, 9, 16, 16, 3)  # closed loop, 8 steps
   assert namespace["video"].shape == (2, 27, 32, 32, 16)      # the model from a config
   assert np.isfinite(float(namespace["loss"])) and np.isfinite(float(namespace["metrics"]["loss"]))
 
@@ -81,7 +74,7 @@ def test_examples_rollout_and_closed_loop(readers_directory, tmp_path):
   np.testing.assert_array_equal(video[:, 0], frames[:, 0])  # the context frame, unchanged
   video = run_example("closed_loop", workdir, "--frames", str(tmp_path / "frames.npy"),
                       "--steps", "3")
-  assert video.shape == (2, 4, 16, 16, 3)
+  assert video.shape == (2, 1 + 3 * 5, 16, 16, 3)  # 3 steps of the model's horizon, 5 frames
 
 
 def test_example_evaluate_policy(readers_directory):
@@ -90,14 +83,10 @@ def test_example_evaluate_policy(readers_directory):
   assert {"pearson", "ranking_preserved"} <= set(result)
 
 
-def test_example_train_loop(readers_directory, monkeypatch):
-  monkeypatch.chdir(readers_directory)
-  losses = run_example("train_loop", "--steps", "3", f"--config.data.data_dir='{readers_directory}/data'",
-                       "--config.data.gridworld.train_episodes=8",
-                       "--config.data.gridworld.test_episodes=4",
-                       "--config.data.gridworld.episode_length=10", "--config.model.depth=2",
-                       "--config.model.hidden_size=32", "--config.model.num_heads=2",
-                       "--config.batch_size=8")
+def test_example_train_loop(data_dir, monkeypatch):
+  monkeypatch.chdir(ROOT)
+  losses = run_example("train_loop", "--steps", "3",
+                       *(f"--config.{o}" for o in gridworld_overrides(data_dir)))
   assert len(losses) == 3 and np.isfinite(losses).all()
 
 

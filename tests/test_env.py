@@ -27,6 +27,7 @@ def _setup(b=2, c=2):
   return wm, params, context, raw
 
 
+@pytest.mark.slow
 def test_raw_actions_are_normalised_with_the_checkpoint_statistics():
   wm, params, context, raw = _setup()
   stats = _stats(7)
@@ -45,6 +46,7 @@ def test_raw_actions_are_normalised_with_the_checkpoint_statistics():
   assert float(jnp.abs(unnormalised - expected).max()) > 1e-3
 
 
+@pytest.mark.slow
 def test_context_grows_to_its_length_and_keeps_known_actions():
   """Started from one frame, the window grows to c frames; the actions between them are known."""
   wm, params, context, raw = _setup(b=1, c=1)
@@ -58,6 +60,7 @@ def test_context_grows_to_its_length_and_keeps_known_actions():
   assert env.video().shape == (1, 4, 8, 8, 16)
 
 
+@pytest.mark.slow
 def test_rewards_truncation_and_uint8_frames():
   wm, params = tiny_world_model("irasim.py:S", "sampling.num_steps=2", "model.in_channels=3",
                                 frame_shape=(8, 8, 3))

@@ -1,5 +1,5 @@
 """Evaluation tools: video files, user inputs, the protocols, and `wmjax evaluate` / `wmjax rollout`
-on a tiny gridworld model trained here."""
+on the suite's tiny gridworld model (conftest.py)."""
 
 import csv
 import json
@@ -25,7 +25,6 @@ from wmjax.eval.trajectories import Trajectories
 from wmjax.model import LoadedModel, load_model
 from wmjax.rollout import rollout
 from wmjax.tasks.gridworld import dataset as gridworld
-from wmjax.train.loop import train
 
 # ----------------------------------------------------------------------------- video files
 
@@ -117,6 +116,7 @@ def _loaded(wm, params, config_name="irasim.py:S"):
 
 
 @pytest.mark.unit
+@pytest.mark.slow
 def test_run_rollouts_scores_only_real_frames():
   """Trajectories of different lengths padded together: frames past the end are NaN, the copy-last
   baseline is exact, and the mean of a trajectory covers its own frames only."""
@@ -178,26 +178,15 @@ def test_frechet_distances_from_user_feature_networks():
 # ----------------------------------------------------------------------------- commands
 
 
-@pytest.fixture(scope="module")
-def workdir(tmp_path_factory):
-  """A tiny gridworld model trained for a few steps (two checkpoints)."""
-  root = tmp_path_factory.mktemp("evaluate")
-  overrides = {
-      "data.data_dir": repr(str(root / "data")), "data.gridworld.train_episodes": 8,
-      "data.gridworld.test_episodes": 3, "data.gridworld.episode_length": 14,
-      "model.hidden_size": 32, "model.depth": 2, "model.num_heads": 2, "model.patch_size": 4,
-      "batch_size": 8, "train.num_steps": 4, "train.log_every": 2, "train.checkpoint_every": 2,
-      "train.eval_every": 0, "train.eval_windows": 2, "sampling.num_steps": 2,
-      "optim.warmup_steps": 1, "optim.total_steps": 4,
-      # 6-frame windows, 5 new frames a block (the default trains on 2-frame windows)
-      "data.frames": 6, "model.num_frames": 6, "rollout.horizon": 5, "rollout.short_actions": None}
-  config = load_config(str(ROOT / "configs" / "gridworld.py"),
-                       [f"{k}={v}" for k, v in overrides.items()])
-  train(config, str(root / "run"))
-  return str(root / "run")
+@pytest.fixture
+def workdir(trained_workdir):
+  """The suite's tiny gridworld model (conftest.py): 6-frame windows, checkpoints 2 and 4, 2
+  held-out episodes of 12 steps."""
+  return str(trained_workdir)
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_load_model_reads_ema_or_raw_parameters(workdir):
   ema = load_model(workdir)
   raw = load_model(workdir, params="raw", step=2, overrides=["sampling.num_steps=3"])
@@ -217,6 +206,7 @@ def test_load_model_reads_ema_or_raw_parameters(workdir):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_evaluate_command_writes_metrics_report_and_videos(workdir, tmp_path):
   out = tmp_path / "eval"
   assert cli.main(["evaluate", "--workdir", workdir, "--out", str(out), "--sets", "2",
@@ -225,9 +215,9 @@ def test_evaluate_command_writes_metrics_report_and_videos(workdir, tmp_path):
                    "--clip_features", "test_evaluate:colour_trajectory_features"]) == 0
   results = json.loads((out / "metrics.json").read_text())
   short, long = results["short"], results["long"]
-  assert short["horizon"] == 5 and short["trajectories"] == 3 * 2  # 14 steps -> 2 windows of 6
+  assert short["horizon"] == 5 and short["trajectories"] == 2 * 2  # 12 steps -> 2 windows of 6
   assert set(short["frechet"]) == {"fid", "fvd"} and short["frechet"]["fid"] >= 0
-  assert long["trajectories"] == 3 and len(long["model"]["mse"]["per_frame"]) == 13
+  assert long["trajectories"] == 2 and len(long["model"]["mse"]["per_frame"]) == 11
   for protocol in (short, long):
     for name in ("mse", "psnr", "ssim", "gray_psnr", "gray_ssim", "latent_l2", "masked_mse",
                  "square_error_px"):
@@ -244,6 +234,7 @@ def test_evaluate_command_writes_metrics_report_and_videos(workdir, tmp_path):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_short_protocol_chains_blocks_beyond_the_window(workdir, tmp_path):
   """``rollout.short_actions`` longer than the 6-frame window: 1 frame + 7 actions, generated in
   chained blocks of 5, every one of the 7 frames scored."""
@@ -252,18 +243,19 @@ def test_short_protocol_chains_blocks_beyond_the_window(workdir, tmp_path):
                    "--videos", "0", "--config.rollout.short_actions=7"]) == 0
   short = json.loads((out / "metrics.json").read_text())["short"]
   assert short["actions"] == 7 and short["horizon"] == 5
-  assert short["trajectories"] == 3  # 14 steps -> 1 window of 8 per episode
+  assert short["trajectories"] == 2  # 12 steps -> 1 window of 8 per episode
   assert len(short["model"]["square_error_px"]["per_frame"]) == 7
   # without --split: the config's evaluation split (an imported dataset may hold out train[k:])
   held_out = tmp_path / "held_out"
   assert cli.main(["evaluate", "--workdir", workdir, "--out", str(held_out), "--protocols",
                    "short", "--videos", "0", "--config.rollout.short_actions=7",
-                   "--config.data.eval_split='train[:2]'"]) == 0
+                   "--config.data.eval_split='train[:3]'"]) == 0
   metrics = json.loads((held_out / "metrics.json").read_text())
-  assert metrics["split"] == "train[:2]" and metrics["short"]["trajectories"] == 2
+  assert metrics["split"] == "train[:3]" and metrics["short"]["trajectories"] == 3
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_rollout_command_applies_the_checkpoint_normalisation(workdir, tmp_path, capsys):
   model = load_model(workdir)
   config = gridworld.GridworldConfig(num_squares=2, image_size=16, square_size=4)
@@ -295,6 +287,7 @@ def test_rollout_command_applies_the_checkpoint_normalisation(workdir, tmp_path,
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_checkpoints_from_before_a_config_field_take_its_override(workdir, tmp_path):
   """A checkpoint whose stored config predates sampling.kv_cache and model.attention_impl loads
   with their defaults, and the new fields can be overridden."""

@@ -27,6 +27,7 @@ def _batch(seed=0, batch=16):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_auto_fit_takes_micro_batches_under_a_budget_and_keeps_the_loss():
   """Under a memory budget below the plain step's compiled size, the trainer's fit climbs to
   gradient accumulation, says so, and its first step has the plain step's loss."""
@@ -61,6 +62,7 @@ REFUSAL = ("RESOURCE_EXHAUSTED: Ran out of memory on HBM, the total memory requi
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_a_step_the_compiler_refuses_does_not_fit_and_the_ladder_climbs(monkeypatch):
   """A TPU compiler refuses a program larger than the HBM (RESOURCE_EXHAUSTED) instead of
   reporting its size: that setting does not fit, and the ladder goes on to the next one."""
@@ -99,6 +101,7 @@ def test_targets_parse_and_refuse_clearly():
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_rollout_block_compiles_for_a_target_with_its_memory():
   """``wmjax compile --what rollout``: one rollout block jitted for the target's first device, its
   memory against a budget, the sampler's model calls and the analytic FLOPs."""
@@ -114,6 +117,7 @@ def test_rollout_block_compiles_for_a_target_with_its_memory():
 
 @pytest.mark.integration
 @pytest.mark.skipif(sys.platform != "linux", reason="libtpu (the [test] extra) is Linux-only")
+@pytest.mark.slow
 def test_train_step_compiles_for_a_tpu_pod_slice_without_one():
   """A v5p:2x2x1 topology (4 chips, from libtpu on this CPU machine): the sharded step compiles
   for the TPU, attention resolves to the TPU's splash kernel, and the memory is the TPU's."""
@@ -129,6 +133,7 @@ def test_train_step_compiles_for_a_tpu_pod_slice_without_one():
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_fsdp_activation_memory_stays_with_the_data_parallel_step():
   """With activations constrained to the batch axes, FSDP over 4 devices needs no more temporary
   memory than data parallelism over 4 (same per-device batch) plus one layer's gathered weights.
@@ -162,6 +167,7 @@ def _run_host_only(command: list[str]) -> dict:
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_host_commands_never_start_an_accelerator_backend(tmp_path):
   """info and compile run on the CPU even where JAX_PLATFORMS asks for a GPU (a GPU backend would
   fail here, or take 75 % of the card where there is one); compile --target cpu:2 gets its two

@@ -1,26 +1,27 @@
 """Issue 37: `wmjax data import irasim | wpe` on small datasets written here in the IRASim and
 WPE layouts (bytedance/IRASim, world-model-eval/world-model-eval): what lands in the RLDS, the
-bad inputs (one error line naming the file, or a counted skip), and import -> inspect -> train
--> evaluate."""
+bad inputs (one error line naming the file, or a counted skip), and import -> inspect -> the
+training command's data."""
 
 import dataclasses
 import json
 import logging
 import os
 import re
-import shlex
 
 import numpy as np
 import pytest
 
-from conftest import one_line_error
+from conftest import OWN_DATA_TINY, inspected_command, one_line_error
 from wmjax import cli
+from wmjax.config import load_config
 from wmjax.data import oxe
 from wmjax.data.rlds import decode_image
 from wmjax.data.irasim import euler_to_matrix, matrix_to_euler, relative_actions
 from wmjax.data.sources import ArrayRecordEpisodes, open_builder
 from wmjax.data.videoio import read_video
 from wmjax.eval.video import write_video
+from wmjax.train.data import build_data, eval_windows
 
 pytestmark = pytest.mark.integration
 
@@ -271,32 +272,33 @@ def test_a_video_shorter_than_its_actions_is_an_error_naming_it(tmp_path, capsys
   assert f"{root / 'rt_1' / 'train' / '000000000.mp4'}: frames [0, 5) asked for" in line
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("fmt", ["irasim", "wpe"])
-def test_import_inspect_train_evaluate(tmp_path, capsys, fmt):
-  """What a user of IRASim's or WPE's data runs: import, inspect, the training command inspect
-  prints (tiny widths), evaluate on IRASim's evaluation split (test) / WPE's test split."""
+def test_the_command_inspect_prints_reads_the_imported_data(tmp_path, capsys, fmt):
+  """What a user of IRASim's or WPE's data runs: import, inspect, and the training command inspect
+  prints (tiny widths): its config takes the data's action width and reads training windows, and
+  the evaluation windows of IRASim's evaluation split (test) / WPE's test split. That such a
+  command then trains and evaluates: test_data_specs.py::test_own_lerobot_data_from_import_to_evaluation."""
   if fmt == "irasim":
     src = write_irasim(tmp_path, "rt1", {"train": (5, 5, 4), "test": (5,)})
   else:
     src = write_wpe(tmp_path / "converted", {"rt_1": {"train": (5, 5, 4), "test": (5,)}})
-  out, workdir = _import(capsys, fmt, src, tmp_path / "data"), str(tmp_path / "run")
-  assert cli.main(["data", "inspect", out]) == 0
-  printed = capsys.readouterr().out
+  out = _import(capsys, fmt, src, tmp_path / "data")
+  printed, command = inspected_command(capsys, out, str(tmp_path / "run"))
   name, dim = ("irasim_rt1", 7) if fmt == "irasim" else ("wpe", 10)
   assert f"this is the built-in {name!r} spec ({dim}-dim actions, gripper dimension 6" in printed
-  command = shlex.split(printed.splitlines()[-1].replace("WORKDIR", workdir))
-  assert command[:2] == ["wmjax", "train"] and f"--config.model.action_dim={dim}" in command
-  config_file = command[command.index("--config") + 1]
-  command[command.index("--config") + 1] = os.path.join(os.path.dirname(__file__), "..",
-                                                        config_file)
-  tiny = {"data.resolution": (16, 16), "frame_shape": (16, 16, 3), "model.depth": 2,
-          "model.hidden_size": 32, "model.num_heads": 2, "batch_size": 8,
-          "train.num_steps": 1, "train.eval_every": 0, "data.train_split": "train",
-          "data.eval_split": "test"}
-  assert cli.main(command[1:] + [f"--config.{k}={v!r}" for k, v in tiny.items()]) == 0
-  capsys.readouterr()
-  assert cli.main(["evaluate", "--workdir", workdir, "--protocols", "long", "--videos", "0"]) == 0
-  results = json.loads((tmp_path / "run" / "eval" / "test-step1" / "metrics.json").read_text())
-  assert results["long"]["trajectories"] == 1
-  assert np.isfinite(results["long"]["model"]["mse"]["mean"])
+  assert f"--config.model.action_dim={dim}" in command
+  tiny = {**OWN_DATA_TINY, "data.train_split": "train", "data.eval_split": "test"}
+  config = load_config(command[command.index("--config") + 1],
+                       [a.removeprefix("--config.") for a in command if a.startswith("--config.")]
+                       + [f"{k}={v!r}" for k, v in tiny.items()])
+  data = build_data(config)  # what `wmjax train` checks against the model before compiling
+  (member,) = data.members
+  assert (member.spec.name, member.spec.action_dim) == (name, dim)
+  frames = config.data.frames
+  assert len(member.train) == sum(n - frames + 1 for n in (5, 5, 4))  # every window, stride 1
+  assert member.train[0]["frames"].shape == (frames, 16, 16, 3)
+  assert member.train[0]["actions"].shape == (frames - 1, dim)
+  assert [int(e) for e in member.eval.episodes.lengths()] == [5]  # the test split
+  windows = eval_windows(data, config)
+  assert windows["frames"].shape[1:] == (frames, 16, 16, 3)
+  assert np.isfinite(windows["actions"]).all() and windows["actions"].shape[2] == dim

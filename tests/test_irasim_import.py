@@ -74,6 +74,7 @@ def assert_same_params(a, b):
 
 @pytest.mark.unit
 @pytest.mark.parametrize("variant", ["frame_ada", "video_ada"])
+@pytest.mark.slow
 def test_round_trip_gives_the_same_parameters_and_outputs(tiny_config, variant):
   network = network_of(tiny_config, variant)
   params = random_params(network, seed=3)
@@ -91,6 +92,7 @@ def test_round_trip_gives_the_same_parameters_and_outputs(tiny_config, variant):
 
 
 @pytest.mark.unit
+@pytest.mark.slow
 def test_query_key_value_split_follows_irasims_head_layout(tiny_config):
   """IRASim reshapes qkv(x) to [B, N, 3, heads, d]: rows [k*D + h*d, k*D + (h+1)*d) of the fused
   weight are head h of q (k=0), k (k=1) or v (k=2)."""

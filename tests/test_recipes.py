@@ -1,6 +1,8 @@
-"""The real-data recipes (configs/rt1.py, bridge.py, language_table.py, wpe.py): one training step
-and one rollout each on the Open-X fixture datasets, with a tiny model and a tiny random-weight
-diffusers VAE; pre-encoded latents (`wmjax data encode`) train the same way."""
+"""The real-data recipes (configs/rt1.py, bridge.py, language_table.py, wpe.py) on the Open-X
+fixture datasets, with a tiny model and a tiny random-weight diffusers VAE: bridge.py and wpe.py
+train one step and roll out; rt1.py and language_table.py, bridge.py's model on other datasets,
+read their datasets for their models; pre-encoded latents (`wmjax data encode`) train the same
+way."""
 
 import glob
 import importlib.util
@@ -22,6 +24,7 @@ from wmjax.env import WorldModelEnv
 from wmjax.eval.evaluate import evaluate_checkpoint
 from wmjax.frames import to_model
 from wmjax.model import load_model
+from wmjax.train.data import build_data, eval_windows
 from wmjax.train.loop import train
 
 pytest.importorskip("torch")
@@ -70,15 +73,19 @@ def _config(recipe, assets, **extra):
 
 
 # Every shipped config file and profile, and the test that trains it one step on tiny data of its
-# kind (test_every_shipped_config_is_trained_by_a_test keeps this complete).
-RECIPES = ("rt1.py", "bridge.py", "language_table.py", "wpe.py")
+# kind (test_every_shipped_config_is_trained_by_a_test keeps this complete). rt1.py and
+# language_table.py are bridge.py's model and codec (configs/irasim.py) on other datasets: bridge.py
+# trains here, and their datasets are read for their models by test_recipe_reads_its_dataset.
+RECIPES = ("bridge.py", "wpe.py")
+READ_HERE = ("rt1.py", "language_table.py")
 TRAINED_ELSEWHERE = {
     "irasim.py": "the model of rt1.py, bridge.py and language_table.py (its recipes)",
     "wpe_600m.py": "the model of wpe.py",
     "gridworld.py": "test_train_loop.py, test_overfit.py and the quickstart",
     "pusht.py:cpu": "test_pusht.py (the experiment fixture trains it)",
     "pusht.py:h100": "test_pusht.py::test_h100_profile_trains_one_step",
-    "rlds.py": "test_recipes.py::test_rlds_config_trains_on_three_episodes_with_its_default_splits",
+    "rlds.py": "test_data_specs.py::test_own_lerobot_data_from_import_to_evaluation (inspect's "
+               "command)",
 }
 
 
@@ -107,6 +114,27 @@ def test_recipe_trains_one_step_and_rolls_out(recipe, assets, tmp_path):
   env.reset(frames)
   new, *_ = env.step(np.zeros((2, 3, model.action_stats.action_dim), np.float32))
   assert new.shape == (2, 3) + RESOLUTION + (3,) and np.isfinite(np.asarray(new)).all()
+
+
+@pytest.mark.parametrize("recipe", READ_HERE)
+def test_recipe_reads_its_dataset(recipe, assets):
+  """The recipe's dataset, read as its training run reads it: checked against its model (what
+  `wmjax train` checks before compiling), training windows of its frames, resolution and action
+  width, and finite normalised evaluation windows."""
+  config = _config(recipe, assets)
+  data = build_data(config)
+  (member,) = data.members
+  assert member.spec.name == config.data.dataset
+  assert member.spec.action_dim == config.model.action_dim
+  frames = config.data.frames
+  # the fixture episodes of 5, 3 and 7 steps, windows of 4 frames at stride 1
+  assert len(member.train) == 2 + 4
+  window = member.train[0]
+  assert window["frames"].shape == (frames,) + RESOLUTION + (3,)
+  assert window["actions"].shape == (frames - 1, config.model.action_dim)
+  windows = eval_windows(data, config)
+  assert windows["frames"].shape == (2, frames) + RESOLUTION + (3,)
+  assert np.isfinite(windows["actions"]).all()
 
 
 def test_pre_encoded_latents_train_like_frames(assets, tmp_path, capsys):
@@ -139,26 +167,26 @@ def test_pre_encoded_latents_train_like_frames(assets, tmp_path, capsys):
   assert not os.path.exists(str(out) + ".incomplete")
 
 
-def test_rlds_config_trains_on_three_episodes_with_its_default_splits(assets, tmp_path, capsys):
-  """configs/rlds.py as the README's own-data command runs it: 2-frame windows of its own, and
-  its default splits (train[:90%] / train[90%:]) hold out one of three episodes."""
+def test_rlds_config_reads_three_episodes_with_its_default_splits(assets):
+  """configs/rlds.py as the README's own-data command sets it up: 2-frame windows of its own, and
+  its default splits (train[:90%] / train[90%:]) hold out one of three episodes. The same config
+  trains and evaluates from the command line in
+  test_data_specs.py::test_own_lerobot_data_from_import_to_evaluation."""
   builder = assets[0]["fractal20220817_data"]
-  overrides = [f"--config.{k}={v!r}" for k, v in {
+  config = load_config(str(ROOT / "configs" / "rlds.py"), [f"{k}={v!r}" for k, v in {
       "data.builder_dir": builder, "data.dataset": "fractal20220817_data",
-      "model.action_dim": 7, "data.resolution": (16, 16), "frame_shape": (16, 16, 3),
-      "model.depth": 2, "model.hidden_size": 32, "model.num_heads": 2, "batch_size": 8,
-      "train.num_steps": 1, "train.eval_every": 1, "train.eval_windows": 2}.items()]
-  assert cli.main(["train", "--config", str(ROOT / "configs" / "rlds.py"), "--workdir",
-                   str(tmp_path)] + overrides) == 0
-  result = json.loads((tmp_path / "metrics.json").read_text())
-  assert result["step"] == 1 and np.isfinite(result["val_loss"])
-  assert len(ArrayRecordEpisodes(builder, "train[90%:]")) == 1
-  assert len(ArrayRecordEpisodes(builder, "train[:90%]")) == 2
+      "model.action_dim": 7, "data.resolution": (16, 16), "frame_shape": (16, 16, 3)}.items()])
+  data = build_data(config)  # what `wmjax train` checks against the model before compiling
+  (member,) = data.members
+  assert member.spec.name == "fractal20220817_data" and member.spec.action_dim == 7
+  assert len(member.train.episodes) == 2 and len(member.eval.episodes) == 1
+  assert member.train[0]["frames"].shape == (2, 16, 16, 3)
+  assert eval_windows(data, config)["frames"].shape[1:] == (2, 16, 16, 3)
 
 
 def test_every_shipped_config_is_trained_by_a_test():
   files = {os.path.basename(p) for p in glob.glob(str(ROOT / "configs" / "*.py"))}
-  covered = set(RECIPES) | set(TRAINED_ELSEWHERE)
+  covered = set(RECIPES) | set(READ_HERE) | set(TRAINED_ELSEWHERE)
   covered_files = {c.split(":")[0] for c in covered}
   assert files <= covered_files, f"configs no test trains: {sorted(files - covered_files)}"
   spec = importlib.util.spec_from_file_location("pusht_config", ROOT / "configs" / "pusht.py")

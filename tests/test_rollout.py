@@ -37,6 +37,7 @@ def _closed_loop(wm, params, context, actions, rng, horizon):
 
 
 @pytest.mark.parametrize("config,overrides,c,h,n", CASES)
+@pytest.mark.slow
 def test_open_loop_scan_equals_closed_loop_environment(config, overrides, c, h, n):
   """WorldModelEnv stepped chunk by chunk == the jitted scan, same key and actions (N % h != 0
   included: the last chunk is shorter)."""
@@ -53,6 +54,7 @@ def test_open_loop_scan_equals_closed_loop_environment(config, overrides, c, h, 
   assert float(jnp.abs(out[:, c:]).mean()) > 0  # frames were generated
 
 
+@pytest.mark.slow
 def test_rollout_sharded_over_the_batch_equals_unsharded():
   assert jax.device_count() == 8
   wm, params = tiny_world_model("irasim.py:S", "sampling.num_steps=2")
@@ -68,6 +70,7 @@ def test_rollout_sharded_over_the_batch_equals_unsharded():
                              rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_context_actions_condition_the_first_block():
   wm, params = tiny_world_model("wpe_600m.py", "sampling.num_steps=2", frame_shape=(8, 8, 16))
   context, actions = _inputs(wm, 1, 3, 4, channels=16)
@@ -89,6 +92,7 @@ def test_padding_does_not_change_earlier_frames_of_a_causal_model():
   np.testing.assert_allclose(short, full[:, :7], rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_guidance_combines_conditional_and_null_outputs():
   wm, params = tiny_world_model("irasim.py:S", "sampling.guidance_scale=3.0")
   x = jax.random.normal(jax.random.key(0), (2, 4, 8, 8, 4))
@@ -176,6 +180,7 @@ def test_action_mask_makes_padded_trajectories_match_their_own_rollout():
     ("irasim.py:S", ("model.causal_temporal=True", "model.cond='video'", "sampling.num_steps=3"),
      1, 4),
 ])
+@pytest.mark.slow
 def test_kv_cache_rollout_equals_the_uncached_rollout(config, overrides, c, h):
   """sampling.kv_cache encodes the context once per block; the frames are those of the rollout
   that runs the whole window at every step, open loop and closed loop (float32 rounding of

@@ -1,6 +1,7 @@
 """A run is never lost or silently changed (issue 20): finite checkpoints only, config checks on
 resume, damaged checkpoints, failed saves, the workdir lock, signals and exit codes, and inputs
-refused at the command line. One tiny trained workdir is shared; each test copies it."""
+refused at the command line. The suite's tiny trained workdir is shared (conftest.py); a test that
+resumes or damages it takes a copy."""
 
 import errno
 import json
@@ -17,7 +18,8 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
-from conftest import one_line_error, tiny_config
+from conftest import (GRIDWORLD_DATA, gridworld_config, gridworld_overrides, one_line_error,
+                      tiny_config)
 from wmjax import cli, parallel
 from wmjax.config import ConfigError, load_config
 from wmjax.data.pipeline import WindowSource, training_pipeline
@@ -35,43 +37,11 @@ from wmjax.train.workdir import LOCK_NAME, WorkdirLock, WorkdirLockedError
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def _values(data_dir, **extra):
-  values = {
-      "data.data_dir": repr(str(data_dir)), "data.gridworld.train_episodes": 16,
-      "data.gridworld.test_episodes": 2, "data.gridworld.episode_length": 12,
-      "model.patch_size": 4, "batch_size": 8, "train.num_steps": 4, "train.log_every": 1,
-      "train.checkpoint_every": 2, "train.eval_every": 0, "train.eval_windows": 2,
-      "sampling.num_steps": 2, "optim.warmup_steps": 1, "optim.total_steps": 4}
-  values.update(extra)
-  return [f"{k}={v}" for k, v in values.items()]
-
-
-def _config(data_dir, **extra):
-  return tiny_config("gridworld.py", *_values(data_dir, **extra))
-
-
 def _cli_train(workdir, data_dir, *flags, **extra):
   """``wmjax train`` in this process; returns its exit code."""
-  overrides = [f"--config.{v}" for v in ("model.depth=2", "model.hidden_size=32",
-                                         "model.num_heads=2", "model.num_frames=8")]
-  overrides += [f"--config.{v}" for v in _values(data_dir, **extra)]
+  overrides = [f"--config.{v}" for v in gridworld_overrides(data_dir, **extra)]
   return cli.main(["train", "--config", os.path.join(ROOT, "configs", "gridworld.py"),
                    "--workdir", str(workdir)] + overrides + list(flags))
-
-
-@pytest.fixture(scope="module")
-def trained(data_dir, tmp_path_factory):
-  """4 steps, checkpoints 2 and 4, every step in metrics.jsonl."""
-  workdir = tmp_path_factory.mktemp("trained") / "run"
-  train(_config(data_dir), str(workdir))
-  return workdir
-
-
-@pytest.fixture
-def run(trained, tmp_path):
-  """A copy of the trained workdir to damage or resume."""
-  shutil.copytree(trained, tmp_path / "run")
-  return tmp_path / "run"
 
 
 def _steps(workdir):
@@ -103,6 +73,7 @@ def _patched_step(nan_from=None, then=None):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_sigterm_never_saves_a_nan_state(data_dir, tmp_path, monkeypatch):
   """1: SIGTERM after the state went NaN (no loss was checked: log_every is large) saves
   nothing, and the message does not claim a checkpoint that does not exist (8)."""
@@ -111,7 +82,7 @@ def test_sigterm_never_saves_a_nan_state(data_dir, tmp_path, monkeypatch):
       os.kill(os.getpid(), signal.SIGTERM)
 
   monkeypatch.setattr(ShardedTrainer, "step", _patched_step(nan_from=3, then=terminate))
-  config = _config(data_dir, **{"train.num_steps": 50, "train.log_every": 1000,
+  config = gridworld_config(data_dir, **{"train.num_steps": 50, "train.log_every": 1000,
                                 "train.checkpoint_every": 1000})
   with pytest.raises(NonFiniteLossError, match=r"state at step 3 holds NaN or inf values and was "
                      r"not saved.*No checkpoint was saved yet") as error:
@@ -121,6 +92,7 @@ def test_sigterm_never_saves_a_nan_state(data_dir, tmp_path, monkeypatch):
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_nan_on_a_fresh_run_names_no_checkpoint_and_advises_tighter_clipping(data_dir, tmp_path,
                                                                              monkeypatch):
   """8: the loss goes NaN before any checkpoint: the advice is a smaller grad_clip."""
@@ -132,7 +104,7 @@ def test_nan_on_a_fresh_run_names_no_checkpoint_and_advises_tighter_clipping(dat
 
   monkeypatch.setattr(ShardedTrainer, "step", step)
   with pytest.raises(NonFiniteLossError) as error:
-    train(_config(data_dir), str(tmp_path))
+    train(gridworld_config(data_dir), str(tmp_path))
   message = str(error.value)
   assert "loss is nan at step 1" in message and "No checkpoint was saved yet" in message
   assert "a smaller optim.grad_clip" in message and "raise optim.grad_clip" not in message
@@ -140,50 +112,59 @@ def test_nan_on_a_fresh_run_names_no_checkpoint_and_advises_tighter_clipping(dat
 
 
 @pytest.mark.integration
-def test_ctrl_c_saves_and_exits_130(data_dir, tmp_path, monkeypatch):
-  """10: Ctrl-C (SIGINT) saves the current step like SIGTERM and exits 128 + 2."""
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=lambda s: s.name)
+@pytest.mark.slow
+def test_a_signal_saves_and_exits_128_plus_its_number(data_dir, tmp_path, monkeypatch, capsys,
+                                                     signum):
+  """10: Ctrl-C (SIGINT) and a scheduler's SIGTERM save the current step and make `wmjax train`
+  exit 128 + the signal number (130 / 143: unfinished); the handler before the run is back."""
   def interrupt(step):
     if step == 3:
-      os.kill(os.getpid(), signal.SIGINT)
+      os.kill(os.getpid(), signum)
 
   monkeypatch.setattr(ShardedTrainer, "step", _patched_step(then=interrupt))
-  handler = signal.getsignal(signal.SIGINT)
-  assert _cli_train(tmp_path, data_dir, **{"train.num_steps": 50}) == 130
+  handler = signal.getsignal(signum)
+  assert _cli_train(tmp_path, data_dir, **{"train.num_steps": 50}) == 128 + signum
   assert _steps(tmp_path) == [2, 3]
-  assert signal.getsignal(signal.SIGINT) is handler
+  out = capsys.readouterr().out
+  assert f"{signum.name}: saved step 3" in out and json.loads(out[out.index("{"):])["step"] == 3
+  assert signal.getsignal(signum) is handler
 
 
 # ----------------------------------------------------------------------------- 2, 3, 12
 
 
 @pytest.mark.integration
-def test_resume_refuses_a_changed_config_and_keeps_config_json(run, data_dir):
+@pytest.mark.slow
+def test_resume_refuses_a_changed_config_and_keeps_config_json(trained_copy, data_dir):
   """2: a changed objective is refused with the differing key; config.json is untouched."""
-  before = (run / "config.json").read_text()
+  before = (trained_copy / "config.json").read_text()
   with pytest.raises(ConfigChangeError, match=r"(?s)diffusion.prediction: 'x0' \(checkpoint\) -> "
                      r"'eps' \(now\).*--allow_config_change=diffusion.prediction"):
-    train(_config(data_dir, **{"diffusion.prediction": "eps"}), str(run))
-  assert (run / "config.json").read_text() == before
-  assert _steps(run) == [2, 4]
+    train(gridworld_config(data_dir, **{"diffusion.prediction": "eps"}), str(trained_copy))
+  assert (trained_copy / "config.json").read_text() == before
+  assert _steps(trained_copy) == [2, 4]
 
 
 @pytest.mark.integration
-def test_config_changes_safe_on_resume_or_named_are_accepted_and_recorded(run, data_dir):
+@pytest.mark.slow
+def test_config_changes_safe_on_resume_or_named_are_accepted_and_recorded(trained_copy, data_dir):
   """2: train.num_steps is always accepted, a named change is accepted, both are recorded."""
-  config = _config(data_dir, **{"optim.learning_rate": 1e-3, "train.num_steps": 5})
-  train(config, str(run), allow_config_change=["optim"])
-  record = json.loads((run / "config_changes.jsonl").read_text())
+  config = gridworld_config(data_dir, **{"optim.learning_rate": 1e-3, "train.num_steps": 5})
+  train(config, str(trained_copy), allow_config_change=["optim"])
+  record = json.loads((trained_copy / "config_changes.jsonl").read_text())
   assert record["step"] == 4 and record["changes"]["train.num_steps"]["accepted"] == "safe"
   assert record["changes"]["optim.learning_rate"] == {"checkpoint": 3e-3, "now": 1e-3,
                                                       "accepted": "optim"}
-  assert json.loads((run / "config.json").read_text())["optim"]["learning_rate"] == 1e-3
-  assert _steps(run) == [2, 4, 5]
+  assert json.loads((trained_copy / "config.json").read_text())["optim"]["learning_rate"] == 1e-3
+  assert _steps(trained_copy) == [2, 4, 5]
 
 
 @pytest.mark.integration
-def test_shape_change_on_resume_is_one_clear_error(run, data_dir, capfd):
+@pytest.mark.slow
+def test_shape_change_on_resume_is_one_clear_error(trained_copy, data_dir, capfd):
   """3: a wider model stops at once with one message naming the key, no traceback."""
-  assert _cli_train(run, data_dir, **{"model.hidden_size": 64}) == 1
+  assert _cli_train(trained_copy, data_dir, **{"model.hidden_size": 64}) == 1
   err = capfd.readouterr().err
   message = err[err.index("wmjax train:"):]
   assert "model.hidden_size: 32 (checkpoint) -> 64 (now)" in message
@@ -200,7 +181,7 @@ def test_unknown_config_keys_and_unshardable_meshes_fail_early(data_dir, tmp_pat
     load_config(os.path.join(ROOT, "configs", "gridworld.py"), ["model.depht=3"])
   assert _cli_train(tmp_path, data_dir, "--config.model.depht=3") == 2
   assert "did you mean model.depth?" in capsys.readouterr().err
-  config = _config(data_dir, mesh=(2, 1, 4))  # 2 heads over a 4-way tensor axis
+  config = gridworld_config(data_dir, mesh=(2, 1, 4))  # 2 heads over a 4-way tensor axis
   with pytest.raises(ValueError, match=r"'heads' axis \(model.num_heads\).*tensor axis \(4\)"):
     train(config, str(tmp_path))
   wm = WorldModel.from_config(tiny_config("gridworld.py", "model.num_heads=4"))
@@ -222,6 +203,7 @@ def test_unknown_config_keys_and_unshardable_meshes_fail_early(data_dir, tmp_pat
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_a_failed_background_save_stops_training_at_once(data_dir, tmp_path, monkeypatch):
   """4: the disk fills up while checkpoint 4 is written in the background: training stops
   before the next checkpoint is due, with a one-line message; checkpoint 2 stays, the partial
@@ -243,7 +225,7 @@ def test_a_failed_background_save_stops_training_at_once(data_dir, tmp_path, mon
     return real_step(self, state, frames, actions)
 
   monkeypatch.setattr(ShardedTrainer, "step", slow_step)
-  config = _config(data_dir, **{"train.num_steps": 16})
+  config = gridworld_config(data_dir, **{"train.num_steps": 16})
   with pytest.raises(CheckpointError, match=r"saving checkpoint 4 .* failed: the disk is full "
                      r"\(No space left on device.*checkpoint 2 is intact") as error:
     train(config, str(tmp_path))
@@ -278,33 +260,34 @@ def test_checkpointer_poll_raises_once_the_failed_save_has_finished(tmp_path, mo
 
 
 @pytest.mark.integration
-def test_damaged_latest_checkpoint_falls_back_with_a_warning(run, data_dir, capfd):
+@pytest.mark.slow
+def test_damaged_latest_checkpoint_falls_back_with_a_warning(trained_copy, data_dir, capfd):
   """5: a truncated array file of checkpoint 4: the run resumes from 2, says so naming both,
   and keeps the damaged checkpoint aside; reading it for inference names the file and --step."""
-  data = sorted((run / "checkpoints" / "4" / "state" / "d").iterdir())[0]
+  data = sorted((trained_copy / "checkpoints" / "4" / "state" / "d").iterdir())[0]
   data.write_bytes(data.read_bytes()[:50])
   with pytest.raises(CheckpointError, match=r"checkpoint 4 cannot be read: .*checkpoints/4/state"
                      r".*pass --step 2"):
-    load_model(str(run))
-  train(_config(data_dir), str(run))
+    load_model(str(trained_copy))
+  train(gridworld_config(data_dir), str(trained_copy))
   err = capfd.readouterr().err
   assert "checkpoint 4 cannot be read" in err and "resuming from checkpoint 2" in err
   assert "Event loop is closed" not in err
-  assert _steps(run) == [2, 4] and (run / "damaged_checkpoints" / "4" / "state").is_dir()
-  assert load_model(str(run)).step == 4
-  (run / "checkpoints" / "2" / "config" / "metadata").write_text("")  # unreadable config
+  assert _steps(trained_copy) == [2, 4] and (trained_copy / "damaged_checkpoints" / "4" / "state").is_dir()
+  assert load_model(str(trained_copy)).step == 4
+  (trained_copy / "checkpoints" / "2" / "config" / "metadata").write_text("")  # unreadable config
   with pytest.raises(CheckpointError, match=r"checkpoints/2/config: JSONDecodeError.*--step 4"):
-    load_model(str(run), step=2)
+    load_model(str(trained_copy), step=2)
 
 
 # ----------------------------------------------------------------------------- 6, 7, 9
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_batches_do_not_depend_on_the_number_of_workers(data_dir):
   """6: batch k is the same with 0 or 2 worker processes, and ``start`` skips to it."""
-  builder_dir = gridworld.prepare(str(data_dir), gridworld.GridworldConfig(
-      train_episodes=16, test_episodes=2, episode_length=12))
+  builder_dir = gridworld.prepare(str(data_dir), GRIDWORLD_DATA)
   source = WindowSource(ArrayRecordEpisodes(builder_dir, "train"), 6, 1, None)
   stats = [action_stats(builder_dir)]
 
@@ -324,21 +307,22 @@ def test_batches_do_not_depend_on_the_number_of_workers(data_dir):
 
 
 @pytest.mark.integration
-def test_resume_with_more_workers_logs_each_step_once_and_cleans_up(run, data_dir):
+@pytest.mark.slow
+def test_resume_with_more_workers_logs_each_step_once_and_cleans_up(trained_copy, data_dir):
   """6, 7, 9: the run died after logging step 4 but before checkpoint 4 completed, leaving a
   temporary checkpoint and a stale lock; it resumes from 2 with 2 data workers, reads the same
   batches, logs steps 3 and 4 once, and removes the temporary directory."""
-  first = {row["step"]: row["batch"] for row in _logged(run)}
-  shutil.move(run / "checkpoints" / "4", run / "checkpoints" / "4.orbax-checkpoint-tmp")
+  first = {row["step"]: row["batch"] for row in _logged(trained_copy)}
+  shutil.move(trained_copy / "checkpoints" / "4", trained_copy / "checkpoints" / "4.orbax-checkpoint-tmp")
   dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
                         capture_output=True, text=True).stdout.strip()
-  (run / LOCK_NAME).write_text(json.dumps({"pid": int(dead), "host": socket.gethostname()}))
-  train(_config(data_dir, **{"data.num_workers": 2}), str(run))
-  rows = _logged(run)
+  (trained_copy / LOCK_NAME).write_text(json.dumps({"pid": int(dead), "host": socket.gethostname()}))
+  train(gridworld_config(data_dir, **{"data.num_workers": 2}), str(trained_copy))
+  rows = _logged(trained_copy)
   assert [row["step"] for row in rows] == [1, 2, 3, 4]
   assert {row["step"]: row["batch"] for row in rows} == first
-  assert sorted(os.listdir(run / "checkpoints")) == ["2", "4"]
-  assert not (run / LOCK_NAME).exists()
+  assert sorted(os.listdir(trained_copy / "checkpoints")) == ["2", "4"]
+  assert not (trained_copy / LOCK_NAME).exists()
 
 
 @pytest.mark.integration
@@ -349,7 +333,7 @@ def test_a_second_trainer_in_the_workdir_is_refused(data_dir, tmp_path):
   try:
     with pytest.raises(WorkdirLockedError, match=rf"in use by another `wmjax train` \(pid "
                        rf"{os.getpid()} on {socket.gethostname()}"):
-      train(_config(data_dir), str(tmp_path))
+      train(gridworld_config(data_dir), str(tmp_path))
   finally:
     holder.release()
   assert not (tmp_path / "checkpoints").exists()
@@ -361,7 +345,7 @@ def test_an_early_failure_removes_the_workdir_it_made_and_keeps_one_that_was_the
   """Issue 49: a run that stops before writing anything (here a mesh the heads do not fit)
   leaves no empty workdir, nor the parents it made; a workdir that existed stays, with what it
   held."""
-  config = _config(data_dir, mesh=(2, 1, 4))
+  config = gridworld_config(data_dir, mesh=(2, 1, 4))
   with pytest.raises(ValueError, match="does not divide"):
     train(config, str(tmp_path / "runs" / "new"))
   assert os.listdir(tmp_path) == []
@@ -379,7 +363,8 @@ def test_an_early_failure_removes_the_workdir_it_made_and_keeps_one_that_was_the
 
 
 @pytest.mark.integration
-def test_commands_refuse_unknown_flags_and_out_of_range_inputs(trained, tmp_path, capsys):
+@pytest.mark.slow
+def test_commands_refuse_unknown_flags_and_out_of_range_inputs(trained_workdir, tmp_path, capsys):
   """11: unknown flags, --horizon 0, ambiguous float frames and absurd actions are errors."""
   with pytest.raises(SystemExit) as exit_:
     cli.main(["data", "stats", str(tmp_path), "--splt", "test"])
@@ -388,13 +373,13 @@ def test_commands_refuse_unknown_flags_and_out_of_range_inputs(trained, tmp_path
   frames[0, 4:8, 4:8] = 1.0  # a white square on black, as a [0, 1] image
   np.save(tmp_path / "frames.npy", frames)
   np.save(tmp_path / "actions.npy", np.zeros((5, 4), np.float32))
-  base = ["rollout", "--workdir", str(trained), "--actions", str(tmp_path / "actions.npy"),
+  base = ["rollout", "--workdir", str(trained_workdir), "--actions", str(tmp_path / "actions.npy"),
           "--out", str(tmp_path / "out")]
   one_line_error(capsys, base + ["--frames", str(tmp_path / "frames.npy")],
                  r"ambiguous.*--frame_range 0,1")
   as_uint8 = inputs.read_frames([str(tmp_path / "frames.npy")], (16, 16, 3), value_range="0,1")
   assert as_uint8.max() == 255 and as_uint8.min() == 0
-  with pytest.raises(SystemExit, match=r"--horizon must be between 1 and 7.*got 0"):
+  with pytest.raises(SystemExit, match=r"--horizon must be between 1 and 5.*got 0"):
     cli.main(base + ["--frames", str(tmp_path / "frames.npy"), "--frame_range", "0,1",
                      "--horizon", "0"])
   np.save(tmp_path / "huge.npy", np.full((5, 4), 1e30, np.float32))
@@ -458,6 +443,7 @@ print("started" if started else "not started")
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_a_machine_without_tpu_chips_starts_no_tpu_client():
   """libtpu (the test extra) makes JAX start a TPU client everywhere, and libtpu then prints
   INVALID_ARGUMENT lines on a CPU host; the CLI leaves the TPU out when the machine has none."""

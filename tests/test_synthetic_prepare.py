@@ -17,6 +17,7 @@ print(prepare(sys.argv[1], GridworldConfig(image_size=8, square_size=2, episode_
 """
 
 
+@pytest.mark.slow
 def test_two_processes_preparing_one_dataset_both_succeed(tmp_path):
   jobs = [subprocess.Popen([sys.executable, "-c", PREPARE, str(tmp_path)], stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True) for _ in range(2)]

@@ -31,6 +31,7 @@ def _text_model(cond="per_frame"):
   return model, params, (x, t, a)
 
 
+@pytest.mark.slow
 def test_text_encoded_actions_condition_their_frame():
   model, params, (x, t, a) = _text_model()
   apply = jit_apply(model)

@@ -32,6 +32,7 @@ def _train(mesh_shape, devices=None, steps=3):
   return state, metrics
 
 
+@pytest.mark.slow
 def test_sharded_equals_unsharded():
   reference, ref_metrics = _train((1, 1, 1), devices=jax.devices()[:1])
   for shape in [(2, 4, 1), (1, 8, 1)]:
@@ -64,6 +65,7 @@ def test_bad_batches_fail_before_compilation():
     ShardedTrainer(WorldModel.from_config(config), config, make_mesh((1, 1, 8)), (8, 8, 3), 4)
 
 
+@pytest.mark.slow
 def test_memory_estimate_moves_with_remat_dtype_batch_and_sharding():
   from wmjax.train.memory import estimate
 
@@ -105,6 +107,7 @@ def test_sharded_training_with_splash_attention_equals_xla():
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_compiled_step_is_reused_and_matches_the_jitted_step():
   """``ShardedTrainer.compile`` (what a memory check compiles) runs the same step as ``step``,
   and later steps with that batch shape run the compiled program instead of compiling again."""
@@ -123,6 +126,7 @@ def test_compiled_step_is_reused_and_matches_the_jitted_step():
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_gradient_accumulation_equals_the_whole_batch():
   """optim.grad_accum = 4 cuts the batch of 8 into 4 micro-batches inside the step: same loss,
   gradient norm and parameters as the whole batch (float rounding aside), on a sharded mesh."""

@@ -1,4 +1,5 @@
-"""The training loop end to end: kill and resume, two processes, NaN, SIGTERM, early errors."""
+"""The training loop end to end: kill and resume, two processes, NaN, early errors (SIGTERM and
+Ctrl-C: test_run_integrity.py)."""
 
 import json
 import os
@@ -13,7 +14,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
-from conftest import ROOT, tiny_config
+from conftest import ROOT, gridworld_overrides, tiny_config
 from wmjax.launch import launch_local, process_env
 from wmjax.train.loop import NonFiniteLossError, train
 from wmjax.train.step import ShardedTrainer
@@ -22,16 +23,10 @@ pytestmark = pytest.mark.integration
 
 
 def _overrides(data_dir, **extra):
-  values = {
-      "data.data_dir": repr(str(data_dir)), "data.gridworld.train_episodes": 16,
-      "data.gridworld.test_episodes": 2, "data.gridworld.episode_length": 12,
-      "model.hidden_size": 32, "model.depth": 2, "model.num_heads": 2, "model.patch_size": 4,
-      "batch_size": 4, "train.num_steps": 8, "train.log_every": 1, "train.checkpoint_every": 2,
-      "train.eval_every": 0, "train.eval_windows": 2, "sampling.num_steps": 2,
-      "optim.warmup_steps": 2, "optim.total_steps": 8,
-  }
-  values.update(extra)
-  return [f"{k}={v}" for k, v in values.items()]
+  """The suite's tiny gridworld run (conftest.py), at batch 4 for 8 steps."""
+  return gridworld_overrides(data_dir, **{"batch_size": 4, "train.num_steps": 8,
+                                          "optim.warmup_steps": 2, "optim.total_steps": 8,
+                                          **extra})
 
 
 def _env(devices=2):
@@ -127,6 +122,7 @@ def test_launcher_stops_every_process_when_one_fails(tmp_path):
   assert time.time() - start < 60
 
 
+@pytest.mark.slow
 def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(data_dir, tmp_path, monkeypatch):
   """From step 4 on the step returns NaN parameters and loss (as a diverged run would)."""
   real_step = ShardedTrainer.step
@@ -147,24 +143,6 @@ def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(data_dir, tmp_path, m
   assert ocp.CheckpointManager(str(tmp_path / "checkpoints")).latest_step() == 3
   for value in _flatten(_state(tmp_path, 3)["params"]).values():
     assert np.isfinite(value).all()
-
-
-def test_sigterm_saves_and_exits_with_143(data_dir, tmp_path):
-  """SIGTERM before the last step saves a checkpoint and exits 128 + 15: unfinished."""
-  overrides = _overrides(data_dir, **{"train.num_steps": 100000, "train.checkpoint_every": 1000})
-  process = subprocess.Popen(_train_command(tmp_path, overrides), cwd=ROOT, env=_env(),
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-  log = tmp_path / "metrics.jsonl"
-  deadline = time.time() + 300
-  while not (log.exists() and log.read_text().count("\n") >= 3):
-    assert process.poll() is None and time.time() < deadline
-    time.sleep(0.05)
-  process.send_signal(signal.SIGTERM)
-  stdout, stderr = process.communicate(timeout=300)
-  assert process.returncode == 143, stderr[-2000:]
-  assert "SIGTERM: saved step" in stdout
-  step = json.loads(stdout[stdout.index("{"):])["step"]
-  assert (tmp_path / "checkpoints" / str(step)).is_dir() and 3 <= step < 100000
 
 
 @pytest.mark.parametrize("override,message", [

@@ -27,6 +27,7 @@ def _relative_error(ours, theirs):
 
 
 @pytest.mark.parametrize("layout", sorted(LAYOUTS))
+@pytest.mark.slow
 def test_encode_and_decode_match_diffusers(tmp_path, layout):
   vae = save_random_vae(tmp_path / layout, layout)
   module, params = load_diffusers(str(tmp_path / layout))
@@ -46,6 +47,7 @@ def test_encode_and_decode_match_diffusers(tmp_path, layout):
                          decoded.numpy()) < 1e-4
 
 
+@pytest.mark.slow
 def test_vae_codec_applies_scaling_and_shift_over_video_axes(tmp_path):
   save_random_vae(tmp_path / "sd3", "sd3")
   codec = make_codec(codec_config(kind="vae", path=str(tmp_path / "sd3"), chunk=3))
