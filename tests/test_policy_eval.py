@@ -147,6 +147,7 @@ def brightness_policy(frames, key):
   return actions + jax.random.normal(key, actions.shape)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("context,batch,horizon", [(1, 2, 3), (2, 8, 3), (1, 2, 2)])
 def test_scan_equals_the_environment_loop(context, batch, horizon):
   """B = 8 runs split over the 8 test devices; B = 2 does not divide and stays on one. The

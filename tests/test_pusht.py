@@ -240,6 +240,7 @@ def test_reward_functions():
     rewards.reward_from_spec("iou")
 
 
+@pytest.mark.slow
 @pytest.mark.unit
 def test_success_classifier_learns_and_round_trips(tmp_path):
   rng = np.random.default_rng(0)
