@@ -420,7 +420,8 @@ def test_bad_inputs_end_in_one_line_with_exit_2(tmp_path, capsys, monkeypatch):
                  "is not a LeRobot dataset: no meta/info.json")
   one_line_error(capsys, ["data", "encode", "--config", os.path.join(ROOT, "configs", "bridge.py"),
                           "--out", str(tmp_path / "enc"), f"--config.codec.path={missing!r}"],
-                 "has no config.json .expected a diffusers AutoencoderKL folder")
+                 "AutoencoderKL folder .*, which is not there; without the VAE, "
+                 "--config.codec.kind=pixel")
   monkeypatch.setenv("WMJAX_DEBUG", "1")
   with pytest.raises(ValueError, match="exceeds model.num_frames"):
     cli.main(["train", "--config", grid, "--workdir", str(tmp_path / "w3"),
