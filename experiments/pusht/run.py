@@ -14,10 +14,14 @@ One script for the whole experiment, in stages that each resume where an earlier
    coverage read from the imagined frames and by the classifier (``wmjax eval-policy``);
 5. ``plan``: model-predictive control ranking K candidate chunks from the noisy pusher, executed
    in gym-pusht, one K at a time (``wmjax plan``);
-6. ``summary``: WORKDIR/summary.json (``pearson``, ``spearman``, ``ranking_matches``; per K the
-   final coverage with its paired gain over K = 1 and the chosen plans' imagined value beside
-   their value in the simulator, the exploitability gap; ``minutes`` of wall time summed over the
-   stages and their resumes, from WORKDIR/timing.json) and the tables.
+6. ``summary``: WORKDIR/summary.json (``held_out``: every start state checked against the
+   training split's; ``pearson`` / ``spearman`` with bootstrap ``*_ci95``, ``ranking_matches``;
+   ``block_iou_push_end``, the T's IoU at the end of the ``push`` rollouts; per K the final
+   coverage with its paired gain over K = 1 and the chosen plans' imagined value beside their
+   value in the simulator, the exploitability gap and its selection effect over K = 1;
+   ``minutes`` of wall time summed over the stages and their resumes, from WORKDIR/timing.json)
+   and the tables. Policy evaluation and planning start from held-out states (their own random
+   streams, :func:`wmjax.data.synthetic.stream`).
 
     python experiments/pusht/run.py --workdir workdirs/pusht                 # CPU, <= 90 minutes
     python experiments/pusht/run.py --workdir /tmp/pusht --smoke             # plumbing, minutes
