@@ -53,11 +53,10 @@ def block_pose(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   centroid: the third moment along the axis is positive towards it."""
   h, w = mask.shape[-2:]
   m = mask.astype(np.float64)
-  count = m.sum((-2, -1))
-  n = np.maximum(count, 1)
+  n = np.maximum(m.sum((-2, -1)), 1)
+  centre, found = _centroid(mask)
+  cy, cx = centre[..., 0], centre[..., 1]
   rows, cols = np.arange(h) + 0.5, np.arange(w) + 0.5
-  cy = (m * rows[:, None]).sum((-2, -1)) / n
-  cx = (m * cols).sum((-2, -1)) / n
   dy = rows[:, None] - cy[..., None, None]  # [..., H, 1]
   dx = cols - cx[..., None, None]  # [..., 1, W]
   sxx, syy, sxy = ((m * d).sum((-2, -1)) / n for d in (dx * dx, dy * dy, dx * dy))
@@ -66,7 +65,7 @@ def block_pose(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   skew = (m * (dx * vx[..., None, None] + dy * vy[..., None, None]) ** 3).sum((-2, -1))
   sign = np.where(skew < 0, -1.0, 1.0)
   angle = np.arctan2(-sign * vx, sign * vy)
-  return np.stack([cy, cx], -1), angle, count > 0
+  return centre, angle, found
 
 
 def _angle_difference_deg(a, b) -> np.ndarray:
