@@ -40,9 +40,9 @@ class GeneratedEpisode:
   observations: dict[str, np.ndarray]
 
 
-SPLITS = ("train", "test")
 # the splits' streams are those the datasets were always written with (``seed + offset``)
 _SPLIT_SEED_OFFSETS = {"train": 0, "test": 1_000_003}
+SPLITS = tuple(_SPLIT_SEED_OFFSETS)
 # other purposes: children of the seed's SeedSequence, apart from the splits' streams and each other
 _PURPOSES = ("evaluate", "plan")
 
