@@ -83,6 +83,15 @@ def test_example_evaluate_policy(readers_directory):
   assert {"pearson", "ranking_preserved"} <= set(result)
 
 
+def test_example_improve_policy(readers_directory):
+  result = run_example("improve_policy", str(readers_directory / "workdirs" / "gridworld"),
+                       "--rounds", "1", "--rollouts", "8", "--clone_steps", "2",
+                       "--fit_steps", "2")
+  assert result["before"].shape == result["after"].shape == (64,)
+  assert [r["round"] for r in result["history"]] == [0, 1]
+  assert result["history"][1]["kept_episodes"] == 1  # the best 10 % of 8
+
+
 def test_example_train_loop(data_dir, monkeypatch):
   monkeypatch.chdir(ROOT)
   losses = run_example("train_loop", "--steps", "3",

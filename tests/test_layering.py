@@ -21,7 +21,7 @@ LAYERS = (
     ("wmjax", "wmjax.frames", "wmjax.errors", "wmjax.parallel", "wmjax.launch", "wmjax.config",
      "wmjax.registry"),
     ("wmjax.nn", "wmjax.diffusion", "wmjax.data"),
-    ("wmjax.codecs", "wmjax.model"),
+    ("wmjax.codecs", "wmjax.model", "wmjax.policy"),
     ("wmjax.rollout", "wmjax.env", "wmjax.interactive"),
     ("wmjax.tasks",),
     ("wmjax.train", "wmjax.eval", "wmjax.checkpoints", "wmjax.tasks.pusht.evaluate"),

@@ -178,3 +178,15 @@ def abstract_with_shardings(abstract: Any, shardings: Any) -> Any:
   """ShapeDtypeStructs carrying the shardings to restore into."""
   return jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), abstract,
                       shardings)
+
+
+def replicated_beside(tree: Any, reference: Any) -> Any:
+  """``tree``'s arrays put where ``reference``'s first array lives: replicated over its mesh when
+  that array is laid out by a ``NamedSharding``, else on its device (host arrays: unchanged). A
+  jitted function then takes both (e.g. a policy's parameters beside a world model's)."""
+  placed = getattr(jax.tree.leaves(reference)[0], "sharding", None)
+  if placed is None:
+    return tree
+  if isinstance(placed, NamedSharding):
+    placed = NamedSharding(placed.mesh, PartitionSpec())
+  return jax.device_put(tree, placed)

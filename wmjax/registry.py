@@ -13,7 +13,10 @@ imports a task: a lookup finds what has been registered, and the code below the 
 * per-frame metrics of a dataset (:class:`FrameMetrics`, keyed by the dataset's spec name), which
   :func:`wmjax.eval.metrics.frame_metrics` adds to the pixel metrics;
 * named rewards (``reward(frames [B, T, H, W, 3], instruction) -> [B]``) for
-  :func:`wmjax.eval.rewards.reward_from_spec`.
+  :func:`wmjax.eval.rewards.reward_from_spec`;
+* control tasks with a true environment (e.g. the gridworld's ``reach``), made from a world
+  model's config, on which ``wmjax clone-policy`` and ``wmjax improve`` train policies
+  (:func:`control_task`).
 
 How a dataset's records are read (its :class:`wmjax.data.oxe.DatasetSpec`) is the data layer's
 own catalogue, :func:`wmjax.data.oxe.register`, which a task's dataset module fills too.
@@ -63,6 +66,7 @@ class Task:
   datasets: Mapping[str, GeneratedDataset] = dataclasses.field(default_factory=dict)
   frame_metrics: Mapping[str, FrameMetrics] = dataclasses.field(default_factory=dict)
   rewards: Mapping[str, Callable] = dataclasses.field(default_factory=dict)
+  control_tasks: Mapping[str, Callable[[Any], Any]] = dataclasses.field(default_factory=dict)
 
 
 _TASKS: dict[str, Task] = {}
@@ -93,3 +97,12 @@ def frame_metrics_of(dataset: str) -> FrameMetrics | None:
 def rewards() -> dict[str, Callable]:
   """Every registered reward by name."""
   return {name: r for t in _TASKS.values() for name, r in t.rewards.items()}
+
+
+def control_task(name: str, config) -> Any:
+  """The control task ``name`` of the registered tasks, made for the world model of ``config``."""
+  found = {n: make for t in _TASKS.values() for n, make in t.control_tasks.items()}
+  if name not in found:
+    raise ValueError(f"no control task {name!r} is registered (the config's task module "
+                     f"{config.get('task')!r} offers {sorted(found) or 'none'})")
+  return found[name](config)

@@ -6,6 +6,8 @@ the library and printing the result.
   wmjax rollout --workdir DIR --frames FILE [FILE ...] --actions FILE --out DIR      (rollout)
   wmjax eval-policy --workdir DIR [--policy push:0.1 ...] [--reward coverage|...]   (pusht)
   wmjax plan --workdir DIR [--candidates 1,5,10,50] [--proposal push:0.2]            (pusht)
+  wmjax clone-policy --workdir DIR --out POLICY [--task reach]                      (policy)
+  wmjax improve --workdir DIR --policy POLICY --out NEW [--rounds 3]                 (policy)
   wmjax launch --num_processes 2 -- train --config configs/gridworld.py --workdir DIR (launch)
   wmjax info --config configs/irasim.py:XL [--config.key=value ...]                  (info)
   wmjax compile --config configs/irasim.py:XL --target h100|v5p:2x2x1|cpu:N          (compile)
@@ -20,9 +22,11 @@ the library and printing the result.
   wmjax import irasim CKPT.pt --workdir DIR [--dataset rt1|bridge] [--weights ema|model] (import)
 
 ``eval-policy`` and ``plan`` are Push-T's: they check a Push-T world model against the gym-pusht
-simulator. Config overrides use ``--config.dotted.key=value`` with Python literal values (train,
-evaluate, rollout, eval-policy, plan, info, compile, data encode); an unknown key or flag is an
-error. info, compile and the data commands but encode run JAX on the CPU only.
+simulator. ``clone-policy`` and ``improve`` train a learnable policy on a control task of the
+model's task module (the gridworld's ``reach``) and check it in the task's true environment.
+Config overrides use ``--config.dotted.key=value`` with Python literal values (train, evaluate,
+rollout, eval-policy, plan, info, compile, data encode); an unknown key or flag is an error.
+info, compile and the data commands but encode run JAX on the CPU only.
 """
 
 from __future__ import annotations
@@ -34,19 +38,21 @@ import sys
 from wmjax.cli import common
 
 DESCRIPTION = ("Action-conditioned video world models: train, evaluate and roll out; eval-policy "
-               "and plan check a Push-T model against its simulator.")
+               "and plan check a Push-T model against its simulator; clone-policy and improve "
+               "train a policy inside a model.")
 
 
 def build_parser() -> argparse.ArgumentParser:
   """The ``wmjax`` parser with every command group's subcommands."""
   from wmjax.cli import compile as compile_
-  from wmjax.cli import data, evaluate, importer, info, launch, pusht, rollout, train
+  from wmjax.cli import data, evaluate, importer, info, launch, policy, pusht, rollout, train
   parser = argparse.ArgumentParser(prog="wmjax", description=DESCRIPTION)
   parser.add_argument("--debug", action="store_true",
                       help="show the traceback of an error instead of one line (anywhere "
                            "on the command line; also WMJAX_DEBUG=1)")
   sub = parser.add_subparsers(dest="command", required=True)
-  for group in (train, evaluate, rollout, pusht, launch, info, compile_, data, importer):
+  for group in (train, evaluate, rollout, pusht, policy, launch, info, compile_, data,
+                importer):
     group.add_parser(sub)
   return parser
 

@@ -67,6 +67,22 @@ class ActionStats:
       out = xp.pad(out, [(0, 0)] * (out.ndim - 1) + [(0, pad_to - out.shape[-1])])
     return out
 
+  def affine(self, mode: str = "mean_std") -> tuple[np.ndarray, np.ndarray]:
+    """``(shift, scale)`` ``[A]`` each with ``raw = shift + scale * normalised``: the inverse of
+    :meth:`normalize` (inside the ``bounds`` range, which that mode clips to)."""
+    if mode not in NORMALIZATIONS:
+      raise ValueError(f"normalization must be one of {NORMALIZATIONS}, got {mode!r}")
+    shift, scale = np.zeros(self.action_dim), np.ones(self.action_dim)
+    if mode == "mean_std":
+      shift, scale = self.mean, np.maximum(self.std, 1e-6)
+    elif mode == "bounds":
+      scale = np.maximum(self.p99 - self.p01, 1e-6) / 2
+      shift = self.p01 + scale
+    if self.gripper_dim is not None and mode != "none":
+      shift = np.where(np.arange(self.action_dim) == self.gripper_dim, 0.0, shift)
+      scale = np.where(np.arange(self.action_dim) == self.gripper_dim, 1.0, scale)
+    return shift.astype(np.float32), scale.astype(np.float32)
+
   def to_dict(self) -> dict:
     out = dataclasses.asdict(self)
     for key, value in out.items():

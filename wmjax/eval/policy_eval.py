@@ -6,7 +6,9 @@ key) -> raw actions [B, k, A]``. Two ways to roll it out closed loop in a world 
 * :func:`env_episodes`: any Python callable, through :class:`wmjax.env.WorldModelEnv` (one jitted
   block per chunk, the policy on the host in between);
 * :func:`scan_episodes`: a pure-JAX policy, run inside one jitted ``lax.scan`` over blocks with the
-  world model (no host round trip), for large batches of rollouts.
+  world model (no host round trip), for large batches of rollouts; a policy that is a pytree of
+  arrays (:class:`wmjax.policy.LearnedPolicy`) is an argument of the compiled scan, so a policy
+  with new parameters reuses it.
 
 Both sample block ``k`` with ``block_key(rng, k)`` and call the policy with ``fold_in(key, k)``,
 so for the same keys they produce the same episodes. A reward function ``(frames [B, T, H, W, 3],
@@ -37,7 +39,8 @@ from wmjax.env import RewardFn, WorldModelEnv
 from wmjax.eval.metrics import mean_stderr
 from wmjax.frames import to_model
 from wmjax.model import WorldModel
-from wmjax.parallel import mesh_context, shard_rollout_batch
+from wmjax.parallel import mesh_context, replicated_beside, shard_rollout_batch
+from wmjax.policy import join_policy, split_policy
 from wmjax.rollout import block_key, sample_block_traceable
 
 Policy = Callable[[Any, jax.Array], Any]
@@ -107,10 +110,12 @@ def scan_episodes(world_model: WorldModel, params: Any, policy: Policy, initial_
   window = codec.encode(frames, jax.random.split(rng)[1])
   # The episodes are split over the local devices (when B divides evenly); the scan follows.
   frames, window, history, known = shard_rollout_batch(frames, window, history, jnp.asarray(known))
-  run = _scan_fn(world_model, policy, codec, _StatsKey(action_stats), normalization, steps,
+  static_policy, policy_leaves = split_policy(policy)
+  policy_leaves = replicated_beside(policy_leaves, params)
+  run = _scan_fn(world_model, static_policy, codec, _StatsKey(action_stats), normalization, steps,
                  -(-steps // chunk.shape[1]), horizon)
   with mesh_context(window):
-    frames, actions = run(params, frames, window, history, known, rng, key)
+    frames, actions = run(params, policy_leaves, frames, window, history, known, rng, key)
   return {"frames": frames[:, :c + steps], "actions": actions[:, :steps]}
 
 
@@ -136,9 +141,10 @@ class _StatsKey:
 
 
 @functools.lru_cache(maxsize=32)
-def _scan_fn(world_model, policy, codec, stats_key, normalization, steps, num_calls, horizon):
+def _scan_fn(world_model, static_policy, codec, stats_key, normalization, steps, num_calls,
+             horizon):
   """The jitted closed-loop scan over ``num_calls`` policy calls (``steps`` actions) for one
-  (model, policy, codec, statistics, shape) combination."""
+  (model, policy or policy structure, codec, statistics, shape) combination."""
   normalize = _normalizer(stats_key.stats, normalization, world_model.network.action_dim)
 
   def block(params, rng, carry, actions, valid, index):
@@ -162,7 +168,7 @@ def _scan_fn(world_model, policy, codec, stats_key, normalization, steps, num_ca
              so_far, known_so_far)
     return carry, new_rgb
 
-  def call(params, rng, key, carry, i):
+  def call(params, policy, rng, key, carry, i):
     raw = policy(carry[0], jax.random.fold_in(key, i))
     actions = normalize(raw)
     k = raw.shape[1]
@@ -176,8 +182,8 @@ def _scan_fn(world_model, policy, codec, stats_key, normalization, steps, num_ca
     return carry, (jnp.concatenate(new_rgb, 1), raw)
 
   @jax.jit
-  def run(params, rgb, window, history, known, rng, key):
-    step = functools.partial(call, params, rng, key)
+  def run(params, policy_leaves, rgb, window, history, known, rng, key):
+    step = functools.partial(call, params, join_policy(static_policy, policy_leaves), rng, key)
     _, (new_rgb, raw) = jax.lax.scan(step, (rgb, window, history, known), jnp.arange(num_calls))
     new_rgb = jnp.moveaxis(new_rgb, 0, 1)  # [B, calls, k, H, W, 3]
     new_rgb = new_rgb.reshape((new_rgb.shape[0], -1) + new_rgb.shape[3:])
