@@ -113,6 +113,9 @@ def test_learned_policy_sets_only_its_controls_clips_to_the_data_and_round_trips
   again = load_policy(str(tmp_path / "p"))
   np.testing.assert_array_equal(again(frames, jax.random.key(1)), policy(frames, jax.random.key(1)))
   assert again.controls == policy.controls and again.context == 1
+  from wmjax.tasks.pusht.simulator import policy_from_spec
+  named = policy_from_spec(f"learned:{tmp_path / 'p'}", chunk=4)  # eval-policy --policy learned:DIR
+  np.testing.assert_array_equal(named(frames, jax.random.key(1)), again(frames, jax.random.key(1)))
   with pytest.raises(FileExistsError, match="new directory"):
     policy.save(str(tmp_path / "p"))
   with pytest.raises(ValueError, match=r"reads \[B, 1, H, W, 3\] frames"):

@@ -11,11 +11,11 @@ in the world model (the imagined value and its gap to the true one).
     wmjax train --config configs/gridworld.py --workdir workdirs/gridworld     # the quickstart
     python experiments/improve/run.py --workdir workdirs/gridworld
 
-Writes to --out (default experiments/improve/results): ``gridworld.json`` (both procedures' round
-records, the final gains, the world model's share of the true-environment gain, minutes),
-``gridworld.md`` (the tables) and ``gridworld_before_after.png`` (true-gridworld episodes from
-held-out start states: per state a row of the cloned policy, then one of the policy improved in
-the world model).
+Writes to --out (default experiments/improve/results), named by --seed (``gridworld_seed0``):
+``.json`` (both procedures' round records, the final gains, the world model's share of the
+true-environment gain, minutes), ``.md`` (the tables) and ``_before_after.png`` (true-gridworld
+episodes from held-out start states: per state a row of the cloned policy, then one of the
+policy improved in the world model).
 """
 
 from __future__ import annotations
@@ -111,20 +111,20 @@ def main(argv=None) -> int:
                                         / final["true_environment"]["true_gain"],
       "minutes": minutes}
   os.makedirs(args.out, exist_ok=True)
-  with open(os.path.join(args.out, "gridworld.json"), "w") as f:
+  stem = os.path.join(args.out, f"gridworld_seed{args.seed}")
+  with open(stem + ".json", "w") as f:
     json.dump(result, f, indent=2)
   tables = [f"## {name.replace('_', ' ')}\n\n{report_table(report)}"
             for name, report in reports.items()]
   summary = (f"The world model's improvement reaches "
              f"{result['share_of_true_environment_gain']:.0%} of the true environment's gain.")
-  with open(os.path.join(args.out, "gridworld.md"), "w") as f:
+  with open(stem + ".md", "w") as f:
     f.write("\n\n".join(tables + [summary]) + "\n")
-  write_png(os.path.join(args.out, "gridworld_before_after.png"),
+  write_png(stem + "_before_after.png",
             before_after(task, start, policies["world_model"], args.pictures,
                          args.evaluation_draw))
   print("\n\n".join(tables + [summary]))
-  print(f"wrote {args.out}/gridworld.json, gridworld.md, gridworld_before_after.png "
-        f"({sum(minutes.values()):.1f} minutes)")
+  print(f"wrote {stem}.json, .md and _before_after.png ({sum(minutes.values()):.1f} minutes)")
   return 0
 
 

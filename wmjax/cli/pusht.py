@@ -76,8 +76,9 @@ def add_parser(sub) -> None:
                           description=eval_policy.__doc__, epilog=OVERRIDES_NOTE)
   _simulator_args(policy, "policy_eval")
   policy.add_argument("--policy", action="append",
-                      help="push | push:NOISE | stay | module:attribute, repeatable (default: "
-                           "push, push:0.1, push:0.2, push:0.5, stay)")
+                      help="push | push:NOISE | stay | learned:DIR (wmjax clone-policy / "
+                           "improve) | module:attribute, repeatable (default: push, push:0.1, "
+                           "push:0.2, push:0.5, stay)")
   policy.add_argument("--reward", action="append",
                       help="coverage | vlm | classifier:DIR | goal:IMAGE, repeatable, all scored "
                            "on the same rollouts (default: coverage)")

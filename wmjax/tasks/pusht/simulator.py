@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmjax.frames import to_model
+from wmjax.policy import load_policy
 
 WORKSPACE = 512.0
 GOAL_POSE = (256.0, 256.0, np.pi / 4)  # x, y, theta
@@ -336,9 +337,13 @@ class StayPolicy:
 
 
 def policy_from_spec(spec: str, chunk: int) -> PolicyFn:
-  """``push`` / ``push:NOISE`` (:class:`PushPolicy`), ``stay`` (:class:`StayPolicy`), or
-  ``module.path:attribute`` naming any policy callable ``(frames, key) -> [B, k, 2]``."""
+  """``push`` / ``push:NOISE`` (:class:`PushPolicy`), ``stay`` (:class:`StayPolicy`),
+  ``learned:DIR`` (a :class:`wmjax.policy.LearnedPolicy` saved in ``DIR``; it acts in its own
+  chunks), or ``module.path:attribute`` naming any policy callable ``(frames, key) -> [B, k,
+  2]``."""
   name, _, argument = spec.partition(":")
+  if name == "learned" and argument:
+    return load_policy(argument)
   if name == "push":
     return PushPolicy(noise=float(argument or 0.0), chunk=chunk)
   if name == "stay" and not argument:
@@ -348,4 +353,5 @@ def policy_from_spec(spec: str, chunk: int) -> PolicyFn:
       return getattr(importlib.import_module(name), argument)
     except (ImportError, AttributeError) as e:
       raise ValueError(f"policy {spec!r}: cannot import {argument!r} from {name!r}: {e}") from e
-  raise ValueError(f"policy spec must be push, push:NOISE, stay or module:attribute, got {spec!r}")
+  raise ValueError(f"policy spec must be push, push:NOISE, stay, learned:DIR or module:attribute, "
+                   f"got {spec!r}")
