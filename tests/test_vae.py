@@ -3,6 +3,7 @@ SD3 layouts), weight-file errors, and the codecs."""
 
 import json
 import shutil
+import typing
 
 import jax
 import jax.numpy as jnp
@@ -12,6 +13,7 @@ import safetensors.numpy
 
 from conftest import jit_apply
 from wmjax.codecs import PatchCodec, PixelCodec, codec_config, make_codec
+from wmjax.config import CodecConfig
 from wmjax.nn.vae import load_diffusers, random_vae
 
 torch = pytest.importorskip("torch")
@@ -128,6 +130,8 @@ def test_pixel_and_patch_codecs():
 def test_a_random_vae_codec_reads_no_files(layout):
   """codec.random_vae: the layout's latent channels, scaling and shift, the same weights on
   every build, and the path left unread."""
+  choices = typing.get_args(typing.get_type_hints(CodecConfig)["random_vae"])
+  assert set(choices) == {""} | set(LAYOUTS)  # the schema's choices are the layouts
   config = codec_config(kind="vae", random_vae=layout, random_vae_widths=(8, 8, 16),
                         path="/no/vae")
   codec, again = make_codec(config), make_codec(config)
