@@ -6,12 +6,14 @@
 dataset: its data section and the SDXL VAE codec (``configs/rt1.py`` etc. are these).
 ``get_config('XL,rt1,video_ada')`` is the Video-Ada variant (one embedding of the whole
 trajectory conditions every block) instead of Frame-Ada (``frame_ada``, the default).
+``get_config('tiny,rt1')`` is a recipe at smoke-run size, without downloaded weights: a random
+SDXL-layout VAE and a tiny model on small frames (:func:`wmjax.config.tiny_profile`).
 """
 
 import ml_collections
 
 from wmjax.codecs import codec_config
-from wmjax.config import model_config, optim_config, sampling_config
+from wmjax.config import model_config, optim_config, sampling_config, tiny_profile
 
 # size: (blocks = spatial + temporal, hidden size, heads); ~33M / 132M / 461M / 679M parameters.
 SIZES = {"S": (12, 384, 6), "B": (12, 768, 12), "L": (24, 1024, 16), "XL": (28, 1152, 16)}
@@ -35,8 +37,12 @@ VARIANTS = {"frame_ada": "frame", "video_ada": "video"}
 
 def get_config(arg: str = "XL") -> ml_collections.ConfigDict:
   size, dataset, variant = (arg.split(",") + ["", ""])[:3]
+  if size == "tiny":
+    if not dataset:
+      raise ValueError("the tiny profile shrinks a recipe: name its dataset, e.g. 'tiny,rt1'")
+    return tiny_profile(get_config(f"S,{dataset},{variant}"), "sdxl", f"irasim-tiny-{dataset}")
   if size not in SIZES:
-    raise ValueError(f"IRASim size must be one of {sorted(SIZES)}, got {size!r}")
+    raise ValueError(f"IRASim size must be one of {sorted(SIZES)} or 'tiny', got {size!r}")
   variant = variant or "frame_ada"
   if variant not in VARIANTS:
     raise ValueError(f"IRASim variant must be one of {sorted(VARIANTS)}, got {variant!r}")

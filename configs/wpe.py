@@ -11,6 +11,9 @@ own action statistics. WPE does not give its mixture weights; these are equal (o
       --config.data.mixture.bridge.builder_dir=/data/bridge \\
       --config.data.mixture.language_table.builder_dir=/data/language_table \\
       --config.codec.path=/models/sd3-vae
+
+``get_config('tiny')`` (``configs/wpe.py:tiny``) tries the recipe without downloaded weights: a
+random SD3-layout VAE and a tiny model on small frames (:func:`wmjax.config.tiny_profile`).
 """
 
 import os
@@ -18,7 +21,7 @@ import os
 import ml_collections
 
 from wmjax.codecs import codec_config
-from wmjax.config import load_config
+from wmjax.config import load_config, tiny_profile
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 # (Open-X name, published location, held-out split)
@@ -29,7 +32,12 @@ MIXTURE = (
 )
 
 
-def get_config() -> ml_collections.ConfigDict:
+PROFILES = ("", "tiny")
+
+
+def get_config(profile: str = "") -> ml_collections.ConfigDict:
+  if profile not in PROFILES:
+    raise ValueError(f"WPE recipe profile must be one of {PROFILES}, got {profile!r}")
   config = load_config(os.path.join(HERE, "wpe_600m.py"))
   config.name = "wpe-600m-openx"
   # The SD3 VAE as a diffusers folder (the vae/ of stabilityai/stable-diffusion-3-medium-diffusers):
@@ -49,4 +57,4 @@ def get_config() -> ml_collections.ConfigDict:
       eval_windows=16, max_checkpoints=3,
       # fit before the first step: compiled memory against the device's limit (or the budget)
       auto_fit=True, memory_budget_gib=None))
-  return config
+  return tiny_profile(config, "sd3", "wpe-tiny-openx") if profile == "tiny" else config

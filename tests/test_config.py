@@ -10,6 +10,7 @@ import pathlib
 import pytest
 
 from wmjax import config as config_lib
+from wmjax.codecs import make_codec
 from wmjax.config import ConfigError, apply_overrides, complete_config, load_config
 from wmjax.tasks import with_task
 from wmjax.tasks.gridworld import dataset as gridworld_data
@@ -57,6 +58,9 @@ def test_wrong_types_fail_and_values_take_the_schema_type():
     load_config(GRIDWORLD, ["sampling.kv_cache=1"])
   with pytest.raises(ConfigError, match=r"'frame_shape' must be a tuple \(int, int, int\)"):
     load_config(GRIDWORLD, ["frame_shape=(16,16)"])
+  with pytest.raises(ConfigError, match=r"'codec.random_vae' must be one of '', 'sdxl', 'sd3', "
+                                        r"got sdx$"):
+    load_config(GRIDWORLD, ["codec.random_vae=sdx"])
   with pytest.raises(ConfigError, match=r"'task' must name a module, e.g. 'wmjax.tasks.gridworld', "
                                         r"got 'wmjax/tasks/gridworld.py'"):
     load_config(GRIDWORLD, ["task=wmjax/tasks/gridworld.py"])
@@ -65,12 +69,14 @@ def test_wrong_types_fail_and_values_take_the_schema_type():
     with_task(load_config(GRIDWORLD, ["task=wmjax.frames"]))
   config = load_config(GRIDWORLD, ["optim.learning_rate=1", "train.memory_budget_gib=3",
                                    "name=123", "mesh=[1,-1,1]", "model.dtype=bfloat16",
-                                   "model.attention_impl=None", "data.builder_dir=/x"])
+                                   "model.attention_impl=None", "data.builder_dir=/x",
+                                   "codec.random_vae=sd3"])
   assert config.optim.learning_rate == 1.0 and isinstance(config.optim.learning_rate, float)
   assert config.train.memory_budget_gib == 3.0
   assert config.name == "123"  # a str key keeps the text
   assert config.mesh == (1, -1, 1) and config.model.dtype == "bfloat16"
   assert config.model.attention_impl is None and config.data.builder_dir == "/x"
+  assert config.codec.random_vae == "sd3"  # one of a Literal's choices, bare or quoted
 
 
 @pytest.mark.unit
@@ -98,6 +104,38 @@ def test_every_config_file_loads_complete_and_round_trips(path):
   assert config.data.train_split and config.data.eval_split
   saved = json.loads(config.to_json())  # what a workdir stores
   assert json.loads(complete_config(saved).to_json()) == saved
+
+
+LATENT_RECIPES = ("rt1.py", "bridge.py", "language_table.py", "wpe.py")
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("recipe", LATENT_RECIPES)
+def test_each_latent_recipe_has_a_tiny_profile_without_weights(recipe):
+  """`configs/<recipe>:tiny`: a random VAE (no folder) whose latents of the profile's frames are
+  its frame_shape, windows and rollouts that fit its tiny model, and the recipe's own data,
+  objective and optimiser (tests/test_recipes.py trains them)."""
+  full = load_config(str(ROOT / "configs" / recipe))
+  tiny = load_config(str(ROOT / "configs" / recipe) + ":tiny")
+  assert tiny.codec.kind == "vae" and tiny.codec.random_vae and not tiny.codec.path
+  codec = make_codec(tiny.codec)
+  assert codec.latent_shape(tuple(tiny.data.resolution) + (3,)) == tuple(tiny.frame_shape)
+  assert tiny.frame_shape[-1] == full.frame_shape[-1] == tiny.model.in_channels
+  assert tiny.data.frames <= tiny.model.num_frames
+  assert tiny.rollout.context + tiny.rollout.horizon <= tiny.model.num_frames
+  assert tiny.model.hidden_size < full.model.hidden_size and tiny.batch_size < full.batch_size
+  for section in ("diffusion", "optim"):
+    assert tiny[section].to_dict() == full[section].to_dict(), section
+  for key in ("dataset", "builder_dir", "train_split", "eval_split", "mixture", "spec"):
+    assert tiny.data[key] == full.data[key], key
+
+
+@pytest.mark.unit
+def test_the_tiny_profile_names_what_it_shrinks():
+  with pytest.raises(ValueError, match="name its dataset, e.g. 'tiny,rt1'"):
+    load_config(str(ROOT / "configs" / "irasim.py:tiny"))
+  with pytest.raises(ValueError, match=r"profile must be one of \('', 'tiny'\), got 'small'"):
+    load_config(str(ROOT / "configs" / "wpe.py:small"))
 
 
 @pytest.mark.unit

@@ -224,7 +224,7 @@ def test_inspect_prints_features_and_a_spec_that_reads(fractal):
   # issue 49: the keys the spec reads, and two decoded instructions per split
   assert ("reads: image observation/image; instruction observation/natural_language_instruction; "
           "actions action/world_vector + action/rotation_delta + "
-          "action/gripper_closedness_action\ninstructions (first two episodes):\n"
+          "action/gripper_closedness_action; state none\ninstructions (first two episodes):\n"
           "  train: 'pick up the red block', ''\n") in out
   from wmjax.data.describe import suggest_spec
   spec = suggest_spec("fractal", open_builder(array_record_dir).info.features)
@@ -277,6 +277,49 @@ def test_inspect_recognises_a_string_tensor_instruction():
       "observation/natural_language_instruction", "text")
   assert spec.image_keys == ("observation/rgb",) and spec.action_dim == 3
   assert builtin_spec("mine", features) is None  # no built-in layout has observation/rgb
+
+
+def test_inspect_says_the_robot_state_is_not_read():
+  """The reads line names the dataset's per-step robot state, which no spec role reads (the
+  model is conditioned on actions) unless the spec carries it as an extra."""
+  import tensorflow_datasets as tfds
+  from wmjax.data.describe import _keys_read, state_keys
+  F = tfds.features
+  features = F.FeaturesDict({"steps": F.Dataset({
+      "observation": {"image": F.Image(shape=(8, 8, 3)), "state": F.Tensor(shape=(7,),
+                                                                           dtype=np.float32),
+                      "gripper_state": F.Tensor(shape=(1,), dtype=np.float32),
+                      "state_image": F.Image(shape=(8, 8, 3)), "statement": F.Text()},
+      "action": F.Tensor(shape=(3,), dtype=np.float32)})})
+  leaves = oxe.feature_leaves(features)
+  assert state_keys(leaves) == ["observation/gripper_state", "observation/state"]
+  spec = oxe.DatasetSpec("mine", action_dim=3)
+  assert _keys_read(spec, leaves).endswith(
+      "; state observation/gripper_state, observation/state, not read (the model is conditioned "
+      "on actions; spec.extra_keys carries it into windows)")
+  carried = oxe.DatasetSpec("mine", action_dim=3, extra_keys=("observation/state",))
+  assert _keys_read(carried, leaves).endswith(
+      "; extra observation/state; state observation/gripper_state, not read (the model is "
+      "conditioned on actions; spec.extra_keys carries it into windows)")
+  carried = oxe.DatasetSpec("mine", action_dim=3, extra_keys=tuple(state_keys(leaves)))
+  assert _keys_read(carried, leaves).endswith("; state as extra")
+  assert _keys_read(spec, {"observation/image": features["steps"]["observation"]["image"]}
+                    ).endswith("; state none")
+
+
+def test_the_readme_inspect_example_is_what_inspect_prints(tmp_path):
+  """The README's `wmjax data inspect` output of a small gridworld, at the README's path: every
+  line of it is printed, in order (its "..." stands for the lines it leaves out)."""
+  from wmjax.data.describe import describe
+  readme = (ROOT / "README.md").read_text()
+  example = readme.split("$ wmjax data inspect ", 1)[1].split("```", 1)[0].splitlines()[1:]
+  builder_dir = gridworld.prepare(str(tmp_path), gridworld.GridworldConfig(
+      train_episodes=8, test_episodes=2, episode_length=8))
+  printed = describe(open_builder(builder_dir)).replace(str(tmp_path),
+                                                        "/root/tensorflow_datasets").splitlines()
+  remaining = iter(printed)
+  for line in (line for line in example if line.strip() != "..."):
+    assert line in remaining, f"README line not printed (in this order): {line!r}"
 
 
 def _damaged_copy(builder_dir, destination, damage):

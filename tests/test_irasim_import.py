@@ -2,6 +2,7 @@
 irasim` writing a workdir. The IRASim checkpoints here are synthetic: a tiny model's parameters
 written under IRASim's key names and shapes by the mapping's inverse (no IRASim code)."""
 
+import argparse
 import json
 import os
 import sys
@@ -107,10 +108,14 @@ def test_query_key_value_split_follows_irasims_head_layout(tiny_config):
 
 
 def torch_checkpoint(path, states):
+  """``states`` saved by torch as IRASim's main.py saves them: beside an optimiser state and its
+  config object (an OmegaConf DictConfig there, a Namespace here; torch.load(weights_only=True)
+  refuses both)."""
   torch = pytest.importorskip("torch")
   torch.save({name: {k: torch.from_numpy(np.array(v)) for k, v in state.items()}
-              for name, state in states.items()} | {"opt": {"state": {}, "param_groups": []}},
-             path)
+              for name, state in states.items()}
+             | {"opt": {"state": {}, "param_groups": []},
+                "args": argparse.Namespace(dataset="rt1", learning_rate=1e-4)}, path)
 
 
 @pytest.mark.integration
@@ -212,7 +217,27 @@ def test_another_architecture_is_refused(tiny_config):
 
 
 @pytest.mark.unit
-def test_missing_torch_names_the_extra(monkeypatch, tmp_path):
+def test_the_checkpoint_is_read_without_torch(monkeypatch, tmp_path):
+  """Either state dict, as float32 arrays, with PyTorch not importable; a file that holds no
+  such state dict says what it holds."""
+  states = {"ema": {"a.weight": np.arange(6, dtype=np.float32).reshape(2, 3)},
+            "model": {"a.weight": np.ones((2, 3), np.float32)}}
+  torch_checkpoint(tmp_path / "ckpt.pt", states)
+  torch_checkpoint(tmp_path / "ema_only.pt", {"ema": states["ema"]})
+  torch = sys.modules["torch"]
+  torch.save({"ema": {"a.weight": [1.0, 2.0]}}, tmp_path / "lists.pt")
   monkeypatch.setitem(sys.modules, "torch", None)
-  with pytest.raises(ImportError, match=r"wmjax\[irasim\]"):
-    irasim.read_state_dict(str(tmp_path / "x.pt"))
+  for weights, state in states.items():
+    read = irasim.read_state_dict(str(tmp_path / "ckpt.pt"), weights)
+    assert read.keys() == state.keys() and read["a.weight"].dtype == np.float32
+    np.testing.assert_array_equal(read["a.weight"], state["a.weight"])
+  with pytest.raises(irasim.IRASimImportError,
+                     match=r"ema_only.pt: it holds no 'model' state dict; it holds \['args', "
+                           r"'ema', 'opt'\]"):
+    irasim.read_state_dict(str(tmp_path / "ema_only.pt"), "model")
+  with pytest.raises(irasim.IRASimImportError, match=r"lists.pt: it is not a state dict of "
+                                                     r"tensors: \['a.weight'\]"):
+    irasim.read_state_dict(str(tmp_path / "lists.pt"))
+  (tmp_path / "notes.pt").write_text("not a checkpoint")
+  with pytest.raises(irasim.IRASimImportError, match=r"notes.pt: not a PyTorch file"):
+    irasim.read_state_dict(str(tmp_path / "notes.pt"))

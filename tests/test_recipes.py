@@ -1,8 +1,8 @@
 """The real-data recipes (configs/rt1.py, bridge.py, language_table.py, wpe.py) on the Open-X
-fixture datasets, with a tiny model and a tiny random-weight diffusers VAE: bridge.py and wpe.py
-train one step and roll out; rt1.py and language_table.py, bridge.py's model on other datasets,
-read their datasets for their models; pre-encoded latents (`wmjax data encode`) train the same
-way."""
+fixture datasets, at their `:tiny` profile (a tiny model, a random tiny VAE, no weights):
+bridge.py and wpe.py train one step and roll out; rt1.py and language_table.py, bridge.py's model
+on other datasets, read their datasets for their models; pre-encoded latents (`wmjax data
+encode`) train the same way."""
 
 import glob
 import importlib.util
@@ -27,49 +27,32 @@ from wmjax.model import load_model
 from wmjax.train.data import build_data, eval_windows
 from wmjax.train.loop import train
 
-pytest.importorskip("torch")
-pytest.importorskip("diffusers")
-from vae_fixtures import save_random_vae  # noqa: E402
-
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
-
-RESOLUTION = (32, 48)  # frames are resized to this; the tiny VAE halves it
-TINY = {"model.depth": 2, "model.hidden_size": 32, "model.num_heads": 2, "model.num_frames": 4,
-        "model.remat": "none", "data.frames": 4, "data.num_workers": 0,
-        "data.resolution": RESOLUTION, "rollout.context": 1, "rollout.horizon": 3,
-        "batch_size": 8, "train.num_steps": 1, "train.log_every": 1, "train.checkpoint_every": 1,
-        "train.eval_every": 1000, "train.eval_windows": 2, "sampling.num_steps": 2,
-        "codec.dtype": "float32", "optim.warmup_steps": 0}
 
 
 @pytest.fixture(scope="module")
-def assets(tmp_path_factory):
+def builders(tmp_path_factory):
   root = tmp_path_factory.mktemp("recipes")
-  builders = {name: oxe_fixtures.build(name, str(root / "data"), file_format="array_record")
-              for name in ("fractal20220817_data", "bridge", "language_table")}
-  vaes = {layout: str(root / layout) for layout in ("sdxl", "sd3")}
-  for layout, path in vaes.items():
-    save_random_vae(path, layout, widths=(8, 16))
-  return builders, vaes
+  return {name: oxe_fixtures.build(name, str(root / "data"), file_format="array_record")
+          for name in ("fractal20220817_data", "bridge", "language_table")}
 
 
-def _config(recipe, assets, **extra):
-  builders, vaes = assets
-  values = dict(TINY)
+def _data(recipe, builders) -> dict:
+  """Overrides that point ``recipe`` at the fixture datasets, whose one split is ``train``."""
   if recipe == "wpe.py":
-    values["codec.path"] = vaes["sd3"]
-    values["frame_shape"] = (16, 24, 16)
-    for name, builder in builders.items():
-      values.update({f"data.mixture.{name}.builder_dir": builder,
-                     f"data.mixture.{name}.train_split": "train",
-                     f"data.mixture.{name}.eval_split": "train"})
-  else:
-    dataset = load_config(str(ROOT / "configs" / recipe)).data.dataset
-    values.update({"codec.path": vaes["sdxl"], "frame_shape": (16, 24, 4),
-                   "data.builder_dir": builders[dataset], "data.train_split": "train",
-                   "data.eval_split": "train"})
-  values.update(extra)
-  return load_config(str(ROOT / "configs" / recipe), [f"{k}={v!r}" for k, v in values.items()])
+    return {f"data.mixture.{name}.{key}": value for name, builder in builders.items()
+            for key, value in (("builder_dir", builder), ("train_split", "train"),
+                               ("eval_split", "train"))}
+  dataset = load_config(str(ROOT / "configs" / recipe)).data.dataset
+  return {"data.builder_dir": builders[dataset], "data.train_split": "train",
+          "data.eval_split": "train"}
+
+
+def _config(recipe, builders, **extra):
+  """``configs/<recipe>:tiny`` on the fixture datasets, trained one step."""
+  values = {**_data(recipe, builders), "train.num_steps": 1, **extra}
+  return load_config(str(ROOT / "configs" / recipe) + ":tiny",
+                     [f"{k}={v!r}" for k, v in values.items()])
 
 
 # Every shipped config file and profile, and the test that trains it one step on tiny data of its
@@ -90,13 +73,14 @@ TRAINED_ELSEWHERE = {
 
 
 @pytest.mark.parametrize("recipe", RECIPES)
-def test_recipe_trains_one_step_and_rolls_out(recipe, assets, tmp_path):
-  config = _config(recipe, assets)
+def test_recipe_trains_one_step_and_rolls_out(recipe, builders, tmp_path):
+  config = _config(recipe, builders)
   _, result = train(config, str(tmp_path))
   assert result["step"] == 1 and np.isfinite(result["val_loss"])
   assert np.isfinite(result["rollout_psnr"]) and (tmp_path / "rollout.gif").exists()
   model = load_model(str(tmp_path))
-  assert model.image_shape == RESOLUTION + (3,)
+  image_shape = tuple(config.data.resolution) + (3,)
+  assert model.image_shape == image_shape and config.codec.random_vae
   if recipe == "wpe.py":  # every member's statistics travel with the checkpoint
     stats = json.loads((tmp_path / "checkpoints" / "1" / "action_stats" / "metadata").read_text())
     assert sorted(stats["mixture"]) == ["bridge", "fractal20220817_data", "language_table"]
@@ -110,69 +94,70 @@ def test_recipe_trains_one_step_and_rolls_out(recipe, assets, tmp_path):
         assert np.isfinite(results[protocol]["model"][name]["mean"]), (protocol, name)
     assert (tmp_path / "eval" / "train-step1" / "videos" / "long_000.mp4").exists()
   env = WorldModelEnv.from_model(model)
-  frames = np.random.default_rng(0).integers(0, 256, (2, 1) + RESOLUTION + (3,), np.uint8)
+  frames = np.random.default_rng(0).integers(0, 256, (2, 1) + image_shape, np.uint8)
   env.reset(frames)
   new, *_ = env.step(np.zeros((2, 3, model.action_stats.action_dim), np.float32))
-  assert new.shape == (2, 3) + RESOLUTION + (3,) and np.isfinite(np.asarray(new)).all()
+  assert new.shape == (2, 3) + image_shape and np.isfinite(np.asarray(new)).all()
 
 
 @pytest.mark.parametrize("recipe", READ_HERE)
-def test_recipe_reads_its_dataset(recipe, assets):
+def test_recipe_reads_its_dataset(recipe, builders):
   """The recipe's dataset, read as its training run reads it: checked against its model (what
   `wmjax train` checks before compiling), training windows of its frames, resolution and action
   width, and finite normalised evaluation windows."""
-  config = _config(recipe, assets)
+  config = _config(recipe, builders)
   data = build_data(config)
   (member,) = data.members
   assert member.spec.name == config.data.dataset
   assert member.spec.action_dim == config.model.action_dim
-  frames = config.data.frames
+  frames, image_shape = config.data.frames, tuple(config.data.resolution) + (3,)
   # the fixture episodes of 5, 3 and 7 steps, windows of 4 frames at stride 1
   assert len(member.train) == 2 + 4
   window = member.train[0]
-  assert window["frames"].shape == (frames,) + RESOLUTION + (3,)
+  assert window["frames"].shape == (frames,) + image_shape
   assert window["actions"].shape == (frames - 1, config.model.action_dim)
   windows = eval_windows(data, config)
-  assert windows["frames"].shape == (2, frames) + RESOLUTION + (3,)
+  assert windows["frames"].shape == (2, frames) + image_shape
   assert np.isfinite(windows["actions"]).all()
 
 
-def test_pre_encoded_latents_train_like_frames(assets, tmp_path, capsys):
-  builders, vaes = assets
-  overrides = [f"--config.{k}={v!r}" for k, v in {
-      **TINY, "codec.path": vaes["sdxl"], "frame_shape": (16, 24, 4),
-      "data.builder_dir": builders["bridge"]}.items()]
+def test_pre_encoded_latents_train_like_frames(builders, tmp_path, capsys):
+  recipe = str(ROOT / "configs" / "bridge.py") + ":tiny"
+  overrides = [f"--config.data.builder_dir={builders['bridge']}"]
   out = tmp_path / "latents"
-  assert cli.main(["data", "encode", "--config", str(ROOT / "configs" / "bridge.py"), "--out",
-                   str(out), "--splits", "train"] + overrides) == 0
+  assert cli.main(["data", "encode", "--config", recipe, "--out", str(out), "--splits", "train"]
+                  + overrides) == 0
   episodes = LatentEpisodes(str(out), "train")
   assert list(episodes.lengths()) == list(oxe_fixtures.EPISODE_LENGTHS)
   episode = episodes.episode(2, 1, 5)
-  assert episode.images.shape == (4, 16, 24, 4) and episode.actions.shape == (4, 7)
-  # the stored latents are the codec's encoding of the resized frames
-  codec = make_codec(_config("bridge.py", assets).codec)
+  config = _config("bridge.py", builders)
+  assert episode.images.shape == (4,) + tuple(config.frame_shape)
+  assert episode.actions.shape == (4, 7)
+  # the stored latents are the codec's encoding of the resized frames (a random VAE of the same
+  # layout and widths has the same weights on every build)
+  codec = make_codec(config.codec)
   raw = ArrayRecordEpisodes(builders["bridge"], "train").episode(2)
-  window = make_window(raw, 1, 4, RESOLUTION)
+  window = make_window(raw, 1, 4, tuple(config.data.resolution))
   expected = codec.encode(to_model(window["frames"]))
   np.testing.assert_allclose(episode.images.astype(np.float32), expected, atol=2e-2, rtol=1e-2)
 
-  latent_config = _config("bridge.py", assets, **{"data.latents_dir": str(out)})
+  latent_config = _config("bridge.py", builders, **{"data.latents_dir": str(out)})
   _, result = train(latent_config, str(tmp_path / "run"))
   assert result["step"] == 1 and np.isfinite(result["val_loss"])
-  wrong = _config("bridge.py", assets, **{"data.latents_dir": str(out), "codec.sample": True})
+  wrong = _config("bridge.py", builders, **{"data.latents_dir": str(out), "codec.sample": True})
   with pytest.raises(ValueError, match="was encoded with codec"):
     train(wrong, str(tmp_path / "wrong"))
-  one_line_error(capsys, ["data", "encode", "--config", str(ROOT / "configs" / "bridge.py"),
-                          "--out", str(out)] + overrides, "never overwritten")
+  one_line_error(capsys, ["data", "encode", "--config", recipe, "--out", str(out)] + overrides,
+                 "never overwritten")
   assert not os.path.exists(str(out) + ".incomplete")
 
 
-def test_rlds_config_reads_three_episodes_with_its_default_splits(assets):
+def test_rlds_config_reads_three_episodes_with_its_default_splits(builders):
   """configs/rlds.py as the README's own-data command sets it up: 2-frame windows of its own, and
   its default splits (train[:90%] / train[90%:]) hold out one of three episodes. The same config
   trains and evaluates from the command line in
   test_data_specs.py::test_own_lerobot_data_from_import_to_evaluation."""
-  builder = assets[0]["fractal20220817_data"]
+  builder = builders["fractal20220817_data"]
   config = load_config(str(ROOT / "configs" / "rlds.py"), [f"{k}={v!r}" for k, v in {
       "data.builder_dir": builder, "data.dataset": "fractal20220817_data",
       "model.action_dim": 7, "data.resolution": (16, 16), "frame_shape": (16, 16, 3)}.items()])
@@ -196,10 +181,10 @@ def test_every_shipped_config_is_trained_by_a_test():
   assert profiles <= covered, f"profiles no test trains: {sorted(profiles - covered)}"
 
 
-def test_own_data_mistakes_end_in_one_line(assets, tmp_path, capsys):
+def test_own_data_mistakes_end_in_one_line(builders, tmp_path, capsys):
   """Each mistake a newcomer's own data or flags can make: one line on stderr, exit 2, before
   anything compiles."""
-  builder = assets[0]["fractal20220817_data"]
+  builder = builders["fractal20220817_data"]
   train = ["train", "--config", str(ROOT / "configs" / "rlds.py"), "--workdir", str(tmp_path / "w"),
            f"--config.data.builder_dir={builder}", "--config.data.dataset='fractal20220817_data'",
            "--config.model.action_dim=7"]

@@ -3,6 +3,7 @@ SD3 layouts), weight-file errors, and the codecs."""
 
 import json
 import shutil
+import typing
 
 import jax
 import jax.numpy as jnp
@@ -12,7 +13,8 @@ import safetensors.numpy
 
 from conftest import jit_apply
 from wmjax.codecs import PatchCodec, PixelCodec, codec_config, make_codec
-from wmjax.nn.vae import load_diffusers
+from wmjax.config import CodecConfig
+from wmjax.nn.vae import load_diffusers, random_vae
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("diffusers")
@@ -120,5 +122,39 @@ def test_pixel_and_patch_codecs():
   with pytest.raises(ValueError, match="needs codec.path"):
     make_codec(codec_config(kind="vae"))
   with pytest.raises(ValueError, match="'/no/sdxl-vae', which is not there; without the VAE, "
-                                       "--config.codec.kind=pixel"):
+                                       "--config.codec.kind=pixel.*--config.codec.random_vae=sdxl"):
     make_codec(codec_config(kind="vae", path="/no/sdxl-vae"))
+
+
+@pytest.mark.parametrize("layout", sorted(LAYOUTS))
+def test_a_random_vae_codec_reads_no_files(layout):
+  """codec.random_vae: the layout's latent channels, scaling and shift, the same weights on
+  every build, and the path left unread."""
+  choices = typing.get_args(typing.get_type_hints(CodecConfig)["random_vae"])
+  assert set(choices) == {""} | set(LAYOUTS)  # the schema's choices are the layouts
+  config = codec_config(kind="vae", random_vae=layout, random_vae_widths=(8, 8, 16),
+                        path="/no/vae")
+  codec, again = make_codec(config), make_codec(config)
+  channels = LAYOUTS[layout]["latent_channels"]
+  assert codec.latent_shape((32, 24, 3)) == (8, 6, channels)
+  assert (codec.scaling_factor, codec.shift_factor) == (
+      LAYOUTS[layout]["scaling_factor"], LAYOUTS[layout].get("shift_factor", 0.0))
+  for ours, theirs in zip(jax.tree.leaves(codec.params), jax.tree.leaves(again.params)):
+    np.testing.assert_array_equal(ours, theirs)
+  frames = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (2, 3, 32, 24, 3)), jnp.float32)
+  latents = codec.encode(frames)
+  assert latents.shape == (2, 3, 8, 6, channels) and float(jnp.std(latents)) > 0
+  assert codec.decode(latents).shape == frames.shape
+  with pytest.raises(ValueError, match=r"widths must be one or more positive ints, got \(\)"):
+    make_codec(codec_config(kind="vae", random_vae=layout, random_vae_widths=()))
+
+
+@pytest.mark.parametrize("layout", sorted(LAYOUTS))
+def test_a_random_vae_has_the_parameters_of_its_diffusers_layout(tmp_path, layout):
+  """random_vae's network is the diffusers AutoencoderKL of that layout and widths (one ResNet a
+  level, GroupNorm groups dividing every width): the same parameter names and shapes."""
+  save_random_vae(tmp_path, layout, widths=(8, 12), layers_per_block=1, norm_num_groups=4)
+  module, params = load_diffusers(str(tmp_path))
+  random_module, random_params = random_vae(layout, (8, 12))
+  assert random_module.config == module.config
+  assert jax.tree.map(np.shape, random_params) == jax.tree.map(np.shape, params)

@@ -8,6 +8,8 @@ A world-model config names its codec in ``config.codec``:
                 ``(mean - shift_factor) * scaling_factor`` (or a sample instead of the mean), as
                 IRASim (SDXL VAE) and WPE (SD3 VAE) use them; ``scaling_factor`` / ``shift_factor``
                 default to the folder's config.json; ``dtype`` 'bfloat16' halves the cost.
+                ``random_vae='sdxl' | 'sd3'`` instead builds a randomly initialised VAE of that
+                layout and ``random_vae_widths`` (no files; for trying a recipe without weights).
 
 ``encode`` / ``decode`` map ``[..., H, W, 3] <-> [..., h, w, c]`` over any leading axes (e.g.
 ``[B, T]``), are pure JAX and can be jitted or called inside a jitted step; a VAE processes
@@ -27,7 +29,7 @@ import ml_collections
 from einops import rearrange
 
 from wmjax.config import codec_config  # noqa: F401  (config.codec with every field; re-exported)
-from wmjax.nn.vae import AutoencoderKL, load_diffusers
+from wmjax.nn.vae import AutoencoderKL, load_diffusers, random_vae
 
 CODECS = ("pixel", "patch", "vae")
 
@@ -160,6 +162,21 @@ def _vae_decode(codec: VAECodec, params, latents: jax.Array) -> jax.Array:
   return jnp.clip(_over_frames(one, z, codec.chunk), -1.0, 1.0)
 
 
+def _vae(config: ml_collections.ConfigDict) -> tuple[AutoencoderKL, Any]:
+  """The VAE ``config.codec`` names: random (``random_vae``) or read from ``path``."""
+  if config.random_vae:
+    return random_vae(config.random_vae, config.random_vae_widths, jnp.dtype(config.dtype))
+  if not config.path or not os.path.exists(os.path.expanduser(config.path)):
+    raise ValueError(f"codec.kind='vae' needs codec.path: a diffusers AutoencoderKL folder "
+                     f"(config.json + diffusion_pytorch_model.safetensors), got "
+                     f"{config.path!r}, which is not there; without the VAE, "
+                     f"--config.codec.kind=pixel (load_model(..., overrides=[\"codec.kind="
+                     f"'pixel'\"])) gives the model alone, on latents, and "
+                     f"--config.codec.random_vae=sdxl (or sd3) a random tiny VAE to try a recipe "
+                     f"with (its frame_shape to match; configs/bridge.py:tiny sets both)")
+  return load_diffusers(config.path, jnp.dtype(config.dtype))
+
+
 def make_codec(config: ml_collections.ConfigDict | None) -> Codec:
   """The codec a world-model config names (``config.codec``, schema
   :class:`wmjax.config.CodecConfig`, made by :func:`codec_config`; none means pixels)."""
@@ -172,13 +189,7 @@ def make_codec(config: ml_collections.ConfigDict | None) -> Codec:
     return PatchCodec(int(config.patch_size))
   if kind != "vae":
     raise ValueError(f"codec.kind must be one of {CODECS}, got {kind!r}")
-  if not config.path or not os.path.exists(os.path.expanduser(config.path)):
-    raise ValueError(f"codec.kind='vae' needs codec.path: a diffusers AutoencoderKL folder "
-                     f"(config.json + diffusion_pytorch_model.safetensors), got "
-                     f"{config.path!r}, which is not there; without the VAE, "
-                     f"--config.codec.kind=pixel (load_model(..., overrides=[\"codec.kind="
-                     f"'pixel'\"])) gives the model alone, on latents")
-  module, params = load_diffusers(config.path, jnp.dtype(config.dtype))
+  module, params = _vae(config)
   scaling, shift = config.scaling_factor, config.shift_factor
   return VAECodec(module, params,
                   module.config.scaling_factor if scaling is None else float(scaling),

@@ -27,7 +27,7 @@ import os
 import sys
 import types
 import typing
-from typing import Any, Mapping, Sequence
+from typing import Any, Literal, Mapping, Sequence
 
 import ml_collections
 
@@ -62,6 +62,12 @@ class CodecConfig:
 
   kind: str = "pixel"  # 'pixel' | 'patch' | 'vae'
   path: str = ""  # vae: a diffusers AutoencoderKL folder
+  # vae without files (path is not read): a randomly initialised VAE of a diffusers layout ('sdxl':
+  # 4 latent channels; 'sd3': 16) with these block widths (downsampling by 2 ** (len - 1)), the
+  # same weights on every load; for trying a latent recipe without the weights (a ``:tiny``
+  # profile), its latents mean nothing (wmjax.nn.vae.random_vae)
+  random_vae: Literal["", "sdxl", "sd3"] = ""
+  random_vae_widths: tuple[int, ...] = (8, 16)
   patch_size: int = 1  # patch
   dtype: str = "float32"  # vae compute dtype
   sample: bool = False  # vae: sample the posterior instead of taking its mean
@@ -283,6 +289,8 @@ def _describe(hint: Any) -> str:
   if hint is type(None) or hint is None:
     return "None"
   origin = typing.get_origin(hint)
+  if origin is Literal:
+    return f"one of {', '.join(repr(a) for a in typing.get_args(hint))}"
   if origin in (typing.Union, types.UnionType):
     return " or ".join(_describe(a) for a in typing.get_args(hint))
   if origin is tuple:
@@ -306,6 +314,9 @@ def _typed(value: Any, hint: Any) -> Any:
   if hint is type(None) or hint is None:
     return None if value is None else _NO
   origin = typing.get_origin(hint)
+  if origin is Literal:  # one of the choices, of the choice's own type (True is not 1)
+    choices = typing.get_args(hint)
+    return value if any(type(value) is type(c) and value == c for c in choices) else _NO
   if origin in (typing.Union, types.UnionType):
     args = typing.get_args(hint)
     if value is None:
@@ -487,6 +498,36 @@ def optim_config(**values) -> ml_collections.ConfigDict:
 def codec_config(**values) -> ml_collections.ConfigDict:
   """Every :class:`CodecConfig` field with its default, updated by ``values``."""
   return section_config("codec", **values)
+
+
+# A latent recipe at smoke-run size: a random VAE of these widths halves the frames' sides.
+TINY_VAE_WIDTHS = (8, 16)
+
+
+def tiny_profile(config: ml_collections.ConfigDict, vae_layout: str, name: str
+                 ) -> ml_collections.ConfigDict:
+  """A latent recipe (``configs/bridge.py:tiny`` etc.) shrunk, in place, to try on a CPU without
+  downloaded weights: frames at 1/8 of the recipe's resolution through a random VAE of
+  ``vae_layout`` ('sdxl' or 'sd3', ``codec.random_vae``, no files), a 2-block ST-DiT of width 32
+  on 4-frame windows, rollouts of 1 context frame and 3-frame blocks in 2 sampling steps, batch 8,
+  20 steps with one evaluation at the end. The data locations, splits, spec, objective and
+  optimiser stay the recipe's; ``name`` names the result. What it trains means nothing; it shows
+  that the recipe runs."""
+  height, width = (side // 8 for side in config.data.resolution)
+  shrink = 2 ** (len(TINY_VAE_WIDTHS) - 1)
+  config.name = name
+  config.codec.update(random_vae=vae_layout, random_vae_widths=TINY_VAE_WIDTHS, path="",
+                      dtype="float32")
+  config.frame_shape = (height // shrink, width // shrink, config.model.in_channels)
+  config.model.update(depth=2, hidden_size=32, num_heads=2, num_frames=4, dtype="float32",
+                      remat="none")
+  config.data.update(resolution=(height, width), frames=4, eval_stride=4, num_workers=0)
+  config.rollout.update(context=1, horizon=3)
+  config.sampling.num_steps = 2
+  config.batch_size = 8
+  config.train.update(num_steps=20, log_every=5, checkpoint_every=20, eval_every=20,
+                      eval_windows=4)
+  return config
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,7 +1,9 @@
 """IRASim's published checkpoints as wmjax workdirs.
 
 IRASim (bytedance/IRASim, ``models/irasim.py``, class ``IRASim``) saves PyTorch ``.pt`` files
-holding ``{"model", "ema", "opt"}`` state dicts (or one bare state dict). :func:`from_irasim`
+holding ``{"model", "ema", "opt"}`` state dicts and its config as ``"args"`` (or one bare state
+dict); :func:`read_state_dict` reads one of them without PyTorch
+(:mod:`wmjax.checkpoints.torch_file`). :func:`from_irasim`
 maps such a state dict onto the parameters of the matching :class:`wmjax.nn.STDiT`,
 :func:`to_irasim` is its inverse, and :func:`import_checkpoint` writes a workdir (``config.json``
 and an orbax checkpoint in ``checkpoints/``) that :func:`wmjax.model.load_model`, ``wmjax
@@ -55,6 +57,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
+from wmjax.checkpoints import torch_file
 from wmjax.config import load_config
 from wmjax.data import irasim as data_irasim
 from wmjax.data.stats import ActionStats
@@ -276,32 +279,37 @@ def from_irasim(state: Mapping[str, Any], network, frame_shape: tuple[int, int, 
 # --------------------------------------------------------------------------- the file
 
 
+def _state_dict(checkpoint: Any, weights: str) -> Mapping[str, Any]:
+  """The ``weights`` state dict of a checkpoint's object (``{"model", "ema", ...}`` or one bare
+  state dict), every value a tensor."""
+  if not isinstance(checkpoint, Mapping):
+    raise IRASimImportError(f"it holds a {type(checkpoint).__name__}, not a state dict")
+  if "model" in checkpoint or "ema" in checkpoint:
+    if weights not in checkpoint:
+      raise IRASimImportError(f"it holds no {weights!r} state dict; it holds {sorted(checkpoint)}")
+    checkpoint = checkpoint[weights]
+  if not isinstance(checkpoint, Mapping) or not all(
+      isinstance(v, torch_file.StoredTensor) for v in checkpoint.values()):
+    keys = list(checkpoint)[:5] if isinstance(checkpoint, Mapping) else checkpoint
+    raise IRASimImportError(f"it is not a state dict of tensors: {keys}")
+  return checkpoint
+
+
 def read_state_dict(path: str, weights: str = "ema") -> dict[str, np.ndarray]:
   """The ``weights`` ('ema' or 'model') state dict of an IRASim ``.pt`` file as float32 numpy
-  arrays (a file holding one bare state dict gives that one)."""
+  arrays (a file holding one bare state dict gives that one), read without PyTorch
+  (:mod:`wmjax.checkpoints.torch_file`: only that state dict's tensors are read, and nothing the
+  file names runs, so the optimiser state and IRASim's pickled config cost nothing)."""
   if weights not in WEIGHTS:
     raise ValueError(f"weights must be one of {WEIGHTS}, got {weights!r}")
-  try:
-    import torch
-  except ImportError as e:
-    raise ImportError("reading IRASim checkpoints needs PyTorch: pip install 'wmjax[irasim]'") from e
   if not os.path.isfile(path):
     raise FileNotFoundError(f"no IRASim checkpoint at {path}")
   try:
-    checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-  except Exception as e:
-    raise IRASimImportError(f"{path} is not a PyTorch checkpoint torch.load can read safely: "
-                            f"{str(e).splitlines()[0]}") from e
-  if not isinstance(checkpoint, Mapping):
-    raise IRASimImportError(f"{path} holds a {type(checkpoint).__name__}, not a state dict")
-  if "model" in checkpoint or "ema" in checkpoint:
-    if weights not in checkpoint:
-      raise IRASimImportError(f"{path} holds no {weights!r} state dict; it holds "
-                              f"{sorted(checkpoint)}")
-    checkpoint = checkpoint[weights]
-  if not all(hasattr(v, "numpy") for v in checkpoint.values()):
-    raise IRASimImportError(f"{path} is not a state dict of tensors: keys {list(checkpoint)[:5]}")
-  return {k: v.detach().float().numpy() for k, v in checkpoint.items()}
+    with torch_file.load(path) as checkpoint:
+      state = _state_dict(checkpoint, weights)
+      return {k: v.numpy().astype(np.float32) for k, v in state.items()}
+  except (torch_file.TorchFileError, IRASimImportError) as e:
+    raise IRASimImportError(f"{path}: {e}") from e
 
 
 @dataclasses.dataclass(frozen=True)

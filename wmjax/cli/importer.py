@@ -9,7 +9,8 @@ def import_irasim(args, extra) -> int:
   """Convert an IRASim checkpoint (a PyTorch .pt of bytedance/IRASim's models/irasim.py) into a
   new workdir that evaluate, rollout and load_model read like a training workdir. The size and
   the variant come from the weights, the dataset from the path (IRASim's release layout
-  DATASET/checkpoints/VARIANT/STEP.pt) unless named. Needs PyTorch (pip install 'wmjax[irasim]')."""
+  DATASET/checkpoints/VARIANT/STEP.pt) unless named. The .pt file is read without PyTorch, and
+  nothing it names runs."""
   from wmjax.checkpoints import irasim
 
   config = irasim.import_checkpoint(args.checkpoint, args.workdir, dataset=args.dataset,
@@ -31,7 +32,7 @@ def add_parser(sub) -> None:
   import_sub = parser.add_subparsers(dest="format", required=True)
   irasim = import_sub.add_parser("irasim", help="an IRASim checkpoint (.pt)",
                                  description=import_irasim.__doc__)
-  irasim.add_argument("checkpoint", help="IRASim .pt file ({'model', 'ema', 'opt'} or a state dict)")
+  irasim.add_argument("checkpoint", help="IRASim .pt file ({'model', 'ema', 'opt', 'args'} or a state dict)")
   irasim.add_argument("--workdir", required=True, help="new (or empty) directory to write")
   irasim.add_argument("--dataset", default=None, metavar="{rt1,bridge}",
                       help="the dataset it was trained on (default: from the path; "

@@ -1,10 +1,12 @@
 """``wmjax data inspect``: a prepared TFDS RLDS dataset's splits and features, the keys its spec
-reads with two decoded instructions per split, and a suggested
+reads (and its robot state, which the model does not read) with two decoded instructions per
+split, and a suggested
 :class:`~wmjax.data.oxe.DatasetSpec` to read it with (a guess to check, printed as config)."""
 
 from __future__ import annotations
 
 import itertools
+import re
 
 import numpy as np
 
@@ -64,13 +66,28 @@ def builtin_spec(name: str, features) -> oxe.DatasetSpec | None:
   return None
 
 
-def _keys_read(spec: oxe.DatasetSpec) -> str:
-  """The step keys a resolved spec reads, by role."""
+def state_keys(leaves) -> list[str]:
+  """The per-step robot state features among ``leaves`` (:func:`oxe.feature_leaves`): numeric
+  step keys whose name says ``state`` or ``proprio`` (``observation/state``,
+  ``observation/gripper_state``)."""
+  return sorted(k for k, f in leaves.items() if not k.startswith("episode_metadata/")
+                and re.search("state|proprio", k.split("/")[-1])
+                and not oxe.is_image_feature(f) and np.dtype(f.np_dtype).kind in "fiub")
+
+
+def _keys_read(spec: oxe.DatasetSpec, leaves) -> str:
+  """The step keys a resolved spec reads, by role, and the dataset's robot state, which no
+  role reads unless the spec carries it as an extra."""
   encoding = f" ({spec.instruction_encoding})" if spec.instruction_encoding != "auto" else ""
   instruction = spec.instruction_key + encoding if spec.instruction_key else "none"
   extra = f"; extra {', '.join(spec.extra_keys)}" if spec.extra_keys else ""
+  states = state_keys(leaves)
+  unread = [k for k in states if k not in spec.extra_keys]
+  state = ("none" if not states else "as extra" if not unread else
+           f"{', '.join(unread)}, not read (the model is conditioned on actions; "
+           f"spec.extra_keys carries it into windows)")
   return (f"reads: image {' + '.join(spec.image_keys)}; instruction {instruction}; actions "
-          f"{' + '.join(spec.action_keys)}{extra}")
+          f"{' + '.join(spec.action_keys)}{extra}; state {state}")
 
 
 def _first_instructions(builder, spec: oxe.DatasetSpec, split: str, count: int = 2) -> list[str]:
@@ -125,7 +142,7 @@ def describe(builder) -> str:
   builtin = spec is not None
   spec = spec or suggest_spec(info.name, info.features)
   splits = split_overrides({name: split.num_examples for name, split in info.splits.items()})
-  lines += ["", _keys_read(spec)] + _instruction_lines(builder, spec)
+  lines += ["", _keys_read(spec, leaves)] + _instruction_lines(builder, spec)
   if builtin:
     others = [c for c in cameras if c not in spec.image_keys]
     lines += ["", f"this is the built-in {spec.name!r} spec ({spec.action_dim}-dim actions"

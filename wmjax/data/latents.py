@@ -41,7 +41,11 @@ def codec_description(codec_config) -> dict:
     return {"kind": "pixel"}
   keys = ("kind", "path", "patch_size", "sample", "scaling_factor", "shift_factor")
   out = {k: codec_config.get(k) for k in keys if codec_config.get(k) is not None}
-  if out.get("path"):
+  if codec_config.get("random_vae"):  # no folder: the layout and widths are the weights
+    out.pop("path", None)
+    out.update(random_vae=codec_config.random_vae,
+               random_vae_widths=list(codec_config.random_vae_widths))
+  elif out.get("path"):
     out["path"] = os.path.abspath(os.path.expanduser(out["path"]))
   return out
 

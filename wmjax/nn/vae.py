@@ -13,8 +13,10 @@ from __future__ import annotations
 import dataclasses
 import glob
 import json
+import math
 import os
 import re
+from typing import Sequence
 
 import flax
 import flax.linen as nn
@@ -192,6 +194,41 @@ class AutoencoderKL(nn.Module):
     return self.decode(self.encode(images)[0])
 
 
+def _images(config: VAEConfig) -> jax.Array:
+  """The smallest batch of images ``[1, 8 f, 8 f, in_channels]`` that initialises every parameter
+  (f: the downsampling factor)."""
+  size = 8 * config.downsample_factor
+  return jnp.zeros((1, size, size, config.in_channels))
+
+
+# ----------------------------------------------------------------------------- random weights
+
+# What a diffusers VAE layout fixes besides its widths: latent channels, quant convs, scaling and
+# shift (SD 1.x / SDXL with SDXL's scaling; SD3). The names are CodecConfig.random_vae's choices.
+LAYOUTS = {
+    "sdxl": dict(latent_channels=4, scaling_factor=0.13025),
+    "sd3": dict(latent_channels=16, scaling_factor=1.5305, shift_factor=0.0609,
+                use_quant_conv=False, use_post_quant_conv=False),
+}
+
+
+def random_vae(layout: str, widths: Sequence[int], dtype=jnp.float32, seed: int = 0
+               ) -> tuple[AutoencoderKL, dict]:
+  """A randomly initialised AutoencoderKL of a diffusers ``layout`` (:data:`LAYOUTS`) with block
+  ``widths`` (downsampling by ``2 ** (len(widths) - 1)``), one ResNet block a level and
+  GroupNorm groups dividing every width: (module, params), the same for the same arguments, no
+  files. For trying latent recipes without downloaded weights; its latents mean nothing."""
+  if layout not in LAYOUTS:
+    raise ValueError(f"random VAE layout must be one of {sorted(LAYOUTS)}, got {layout!r}")
+  widths = tuple(int(w) for w in widths)
+  if not widths or min(widths) < 1:
+    raise ValueError(f"random VAE widths must be one or more positive ints, got {widths}")
+  config = VAEConfig(block_out_channels=widths, layers_per_block=1,
+                     norm_num_groups=math.gcd(32, *widths), **LAYOUTS[layout])
+  module = AutoencoderKL(config, dtype)
+  return module, module.init(jax.random.key(seed), _images(config))
+
+
 # ----------------------------------------------------------------------------- diffusers weights
 
 _LEGACY_ATTENTION = {"to_q": "query", "to_k": "key", "to_v": "value", "to_out.0": "proj_attn"}
@@ -272,7 +309,5 @@ def load_diffusers(path: str, dtype=jnp.float32) -> tuple[AutoencoderKL, dict]:
     for key in f.keys():
       state[key] = f.get_tensor(key)
   module = AutoencoderKL(config, dtype)
-  size = 8 * config.downsample_factor
-  abstract = jax.eval_shape(module.init, jax.random.key(0),
-                            jnp.zeros((1, size, size, config.in_channels)))["params"]
+  abstract = jax.eval_shape(module.init, jax.random.key(0), _images(config))["params"]
   return module, {"params": convert_diffusers_state(state, abstract)}
