@@ -108,6 +108,7 @@ class ShardedTrainer:
   def __init__(self, world_model: WorldModel, config: ml_collections.ConfigDict, mesh: Mesh,
                frame_shape: tuple[int, int, int], frames: int):
     self.world_model, self.mesh = world_model, mesh
+    self.frame_shape, self.frames = tuple(frame_shape), frames  # of the batches it trains on
     self.micro_batches = config.optim.grad_accum
     self.tx = make_optimizer(config.optim)
 
