@@ -66,10 +66,10 @@ def _trainer(world_model: WorldModel, config: ml_collections.ConfigDict, mesh: M
 
 def build_context(config: ml_collections.ConfigDict, target: fit.Target,
                   data: TrainData | None = None) -> TrainContext:
-  """The mesh of ``config.mesh`` over the devices of ``target``, the world model of ``config``
-  and its trainer (the mesh checked against the model before anything compiles)."""
-  mesh = parallel.make_mesh(tuple(config.mesh), list(target.devices))
+  """The world model of ``config``, the mesh of ``config.mesh`` over the devices of ``target``
+  and the model's trainer (the mesh checked against the model before anything compiles)."""
   world_model = WorldModel.from_config(config)
+  mesh = parallel.make_mesh(tuple(config.mesh), list(target.devices))
   return TrainContext(config, target, mesh, world_model,
                       _trainer(world_model, config, mesh, target), data)
 
@@ -147,6 +147,6 @@ def set_up(config: ml_collections.ConfigDict, log=print) -> TrainContext:
   analytic memory estimate is logged first, as a hint beside XLA's figure."""
   data = build_data(config, evaluation=config.train.eval_every > 0)
   context = build_context(config, fit.parse_target("local"), data)
-  estimate = memory.estimate(config, jax.device_count(), context.world_model)
+  estimate = memory.estimate(config, context.world_model, jax.device_count())
   log(f"hint: analytic {memory.describe(estimate)}")
   return fit_to_memory(context, log)[0]
