@@ -1,5 +1,5 @@
 """Compiled per-device memory of train steps over a grid of batch sizes and remat settings, for a
-device target without its hardware (``wmjax.train.fit``); one JSON line per setting.
+device target without its hardware (``wmjax.train.aot``); one JSON line per setting.
 
   python benchmarks/compile_grid.py --config configs/irasim.py:XL --target h100 \
       --batch 8 --batch 16 --remat none --remat dots --config.model.dtype=bfloat16 \
@@ -20,7 +20,7 @@ import sys
 import jax
 
 from wmjax.config import load_config, parse_args_with_overrides
-from wmjax.train import fit
+from wmjax.train import aot, fit
 
 
 def main() -> None:
@@ -58,12 +58,12 @@ def main() -> None:
     setting = fit.with_setting(config, remat, 1)
     if not args.largest:
       for batch in args.batch or [config.batch_size]:
-        record(fit.compile_train(setting, target, batch))
+        record(aot.compile_train(setting, target, batch))
       continue
     per_device = args.start or 1
     fits = {}  # per-device batch -> fits
     while True:
-      report = fit.compile_train(setting, target, per_device * mesh_devices)
+      report = aot.compile_train(setting, target, per_device * mesh_devices)
       fits[per_device] = record(report)["fits"]
       if fits[per_device] and fits.get(per_device * 2) is False:
         break

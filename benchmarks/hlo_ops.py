@@ -7,7 +7,7 @@ each class run and how many bytes they move, with its transposes and copies list
   python benchmarks/hlo_ops.py --hlo /tmp/xl.hlo [--summary]
 
 The first form compiles the train step of a config for a device target as ``wmjax compile`` does
-(:func:`wmjax.train.fit.compile_step`; no hardware needed) and reads ``compiled.as_text()``; the
+(:func:`wmjax.train.context.compile_step`; no hardware needed) and reads ``compiled.as_text()``; the
 second reads HLO text saved before. For an H100 target without a GPU, set
 ``XLA_FLAGS="--xla_gpu_enable_triton_gemm=false --xla_gpu_autotune_level=0"``: without autotuning
 the Triton GEMM emitter can fail to tile some matmuls.
@@ -438,9 +438,10 @@ def compiled_text(config_spec: str, overrides: list[str], target_spec: str, batc
   import jax
   jax.config.update("jax_platforms", "cpu")
   from wmjax.config import load_config
-  from wmjax.train import fit
+  from wmjax.train import context, fit
   config = load_config(config_spec, overrides)
-  _, compiled, memory = fit.compile_step(config, fit.parse_target(target_spec), batch)
+  compiled, memory = context.compile_step(
+      context.build_context(config, fit.parse_target(target_spec)), batch)
   return compiled.as_text(), memory
 
 

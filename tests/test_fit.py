@@ -12,7 +12,9 @@ import pytest
 
 from conftest import ROOT, tiny_config
 from wmjax.config import load_config
-from wmjax.train import fit
+from wmjax.train import aot, fit
+from wmjax.train.context import build_context, compile_step, fit_context, fit_to_memory
+from wmjax.train.step import ShardedTrainer
 
 # A small gridworld model: 8x8 RGB frames, 4-frame windows, global batch 16 on 8 devices.
 SMALL = ("model.in_channels=3", "model.action_dim=4", "model.hidden_size=32", "model.num_heads=2",
@@ -32,19 +34,25 @@ def test_auto_fit_takes_micro_batches_under_a_budget_and_keeps_the_loss():
   """Under a memory budget below the plain step's compiled size, the trainer's fit climbs to
   gradient accumulation, says so, and its first step has the plain step's loss."""
   config = tiny_config("gridworld.py", *SMALL)
-  plain_trainer, _, plain = fit.compile_step(config, fit.parse_target("local"))
+  local = fit.parse_target("local")
+  plain_context = build_context(config, local)
+  _, plain = compile_step(plain_context)
   assert plain["fits"] is None and plain["grad_accum"] == 1  # CPU: no limit without a budget
   budget = 0.9 * plain["total_gib"]
-  tight = tiny_config("gridworld.py", *SMALL, f"train.memory_budget_gib={budget}")
+  tight = build_context(tiny_config("gridworld.py", *SMALL, f"train.memory_budget_gib={budget}"),
+                        local)
   lines = []
-  fitted, trainer, report = fit.fit_for_training(tight, log=lines.append)
-  assert report["grad_accum"] > 1 and fitted.optim.grad_accum == report["grad_accum"]
+  fitted, report = fit_to_memory(tight, log=lines.append)
+  assert report["grad_accum"] > 1 and fitted.config.optim.grad_accum == report["grad_accum"]
+  # the fitted trainer runs on the context's one mesh, with the context's model at its remat
+  assert fitted.trainer.mesh is tight.mesh and fitted.mesh is tight.mesh
+  assert fitted.world_model.network.remat == report["remat"] == fitted.config.model.remat
   assert report["fits"] and report["total_gib"] <= budget < plain["total_gib"]
   assert [t["grad_accum"] for t in report["tried"]][0] == 1
   assert any("auto_fit chose" in line and f"grad_accum={report['grad_accum']}" in line
              for line in lines)
   losses = []
-  for t in (plain_trainer, trainer):
+  for t in (plain_context.trainer, fitted.trainer):
     _, metrics = t.step(t.init(jax.random.key(0)), *_batch())
     losses.append(float(metrics["loss"]))
   np.testing.assert_allclose(losses[1], losses[0], rtol=1e-5)
@@ -52,9 +60,9 @@ def test_auto_fit_takes_micro_batches_under_a_budget_and_keeps_the_loss():
   refused = tiny_config("gridworld.py", *SMALL, f"train.memory_budget_gib={budget}",
                         "train.auto_fit=False")
   with pytest.raises(fit.DoesNotFitError, match=r"does not fit.*train.auto_fit=True"):
-    fit.fit_for_training(refused, log=lambda line: None)
+    fit_to_memory(build_context(refused, local), log=lambda line: None)
   with pytest.raises(fit.DoesNotFitError, match=r"smallest tried, remat=full grad_accum=\d+"):
-    fit.fit_step(config, fit.parse_target("cpu:2"), budget_bytes=1024, batch=2)
+    fit_context(build_context(config, fit.parse_target("cpu:2")), budget_bytes=1024, batch=2)
 
 
 REFUSAL = ("RESOURCE_EXHAUSTED: Ran out of memory on HBM, the total memory required for HLO "
@@ -66,19 +74,19 @@ REFUSAL = ("RESOURCE_EXHAUSTED: Ran out of memory on HBM, the total memory requi
 def test_a_step_the_compiler_refuses_does_not_fit_and_the_ladder_climbs(monkeypatch):
   """A TPU compiler refuses a program larger than the HBM (RESOURCE_EXHAUSTED) instead of
   reporting its size: that setting does not fit, and the ladder goes on to the next one."""
-  original = fit.ShardedTrainer.compile
+  original = ShardedTrainer.compile
 
   def compile_refusing_no_remat(trainer, *args):
     if trainer.world_model.network.remat == "none":
       raise jax.errors.JaxRuntimeError(REFUSAL)
     return original(trainer, *args)
 
-  monkeypatch.setattr(fit.ShardedTrainer, "compile", compile_refusing_no_remat)
+  monkeypatch.setattr(ShardedTrainer, "compile", compile_refusing_no_remat)
   config = tiny_config("gridworld.py", *SMALL, "model.remat='none'")
   lines = []
-  fitted, _, report = fit.fit_step(config, fit.parse_target("cpu:2"), budget_bytes=fit.GIB,
-                                   batch=2, log=lines.append)
-  assert fitted.model.remat == "dots" and report["fits"]
+  fitted, report = fit_context(build_context(config, fit.parse_target("cpu:2")),
+                               budget_bytes=fit.GIB, batch=2, log=lines.append)
+  assert fitted.config.model.remat == "dots" and report["fits"]
   assert report["tried"][0] == {"remat": "none", "grad_accum": 1, "total_gib": 123.37}
   assert "more than 123 GiB per device, refused by the compiler" in lines[0]
   assert fit.refused_report(jax.errors.JaxRuntimeError("INTERNAL: boom"),
@@ -106,7 +114,7 @@ def test_rollout_block_compiles_for_a_target_with_its_memory():
   """``wmjax compile --what rollout``: one rollout block jitted for the target's first device, its
   memory against a budget, the sampler's model calls and the analytic FLOPs."""
   config = tiny_config("gridworld.py", *SMALL, "rollout.horizon=3")
-  report = fit.compile_report(config, fit.parse_target("cpu:2"), "rollout", 2,
+  report = aot.compile_report(config, fit.parse_target("cpu:2"), "rollout", 2,
                               budget_bytes=fit.GIB)
   assert report["what"] == "rollout" and report["devices"] == 1 and report["batch"] == 2
   assert (report["context"], report["horizon"]) == (1, 3) and report["model_calls"] > 0
@@ -124,7 +132,7 @@ def test_train_step_compiles_for_a_tpu_pod_slice_without_one():
   config = tiny_config("gridworld.py", *SMALL, "model.attention_impl='auto'", "mesh=(1, -1, 1)")
   target = fit.parse_target("v5p:2x2x1")
   assert target.platform == "tpu" and len(target.devices) == 4
-  report = fit.compile_train(config, target)
+  report = aot.compile_train(config, target)
   assert report["mesh"] == {"data": 1, "fsdp": 4, "tensor": 1}
   assert report["attention"] == "splash"
   assert report["device_memory_gib"] == 95 and report["fits"]
@@ -145,7 +153,7 @@ def test_fsdp_activation_memory_stays_with_the_data_parallel_step():
   temps = {}
   for name, mesh in (("dp", "(4, 1, 1)"), ("fsdp", "(1, 4, 1)")):
     config = load_config(str(ROOT / "configs" / "irasim.py:S"), overrides + (f"mesh={mesh}",))
-    temps[name] = fit.compile_train(config, target, batch=8)["temp_gib"]
+    temps[name] = aot.compile_train(config, target, batch=8)["temp_gib"]
   layer_weights = 2 * 18 * d * d * 4 / fit.GIB  # spatial + temporal block (attention 4D^2, MLP
   assert temps["fsdp"] <= temps["dp"] + layer_weights, temps  # 8D^2, adaLN 6D^2), float32
 

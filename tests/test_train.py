@@ -70,8 +70,8 @@ def test_memory_estimate_moves_with_remat_dtype_batch_and_sharding():
   from wmjax.train.memory import estimate
 
   def report(*overrides, devices=8):
-    return estimate(tiny_config("irasim.py:S", "batch_size=16", "model.depth=16", *overrides),
-                    devices)
+    config = tiny_config("irasim.py:S", "batch_size=16", "model.depth=16", *overrides)
+    return estimate(config, WorldModel.from_config(config), devices)
 
   plain = report()
   assert plain["parameters"] > 0 and plain["mesh"] == [8, 1, 1] and plain["local_batch"] == 2

@@ -49,7 +49,8 @@ def check_batch_divisible(batch: int, mesh: Mesh, micro_batches: int = 1, proces
   """ValueError unless a global batch of ``batch`` examples splits evenly over the batch axes of
   ``mesh`` (the data-parallel size), each shard into ``micro_batches`` gradient-accumulation
   micro-batches, and over ``processes`` feeding processes. The one home of this check: the
-  training loop, the train step and :func:`global_batch` call it."""
+  compilation of a run's step (:mod:`wmjax.train.context`), the train step and
+  :func:`global_batch` call it."""
   axes = [a for a in batch_axes if a in mesh.axis_names]
   data_parallel = int(np.prod([mesh.shape[a] for a in axes]))
   multiple = math.lcm(data_parallel * micro_batches, processes)
@@ -156,9 +157,12 @@ def local_data_mesh() -> jax.sharding.Mesh:
 def shard_rollout_batch(*arrays):
   """Put arrays with a leading batch axis on :func:`local_data_mesh`, split over the devices,
   when the batch divides evenly between them; otherwise return them as they are (a replicated
-  batch would make every device compute all of it)."""
+  batch would make every device compute all of it). In a job of several processes they are
+  returned as they are too: its parameters live on the job's mesh (a training run's evaluation),
+  which every process feeds the same batch."""
   mesh = local_data_mesh()
-  if mesh.size == 1 or any(np.shape(x)[0] % mesh.size for x in arrays):
+  if (mesh.size == 1 or jax.process_count() > 1
+      or any(np.shape(x)[0] % mesh.size for x in arrays)):
     return list(arrays)
   sharding = NamedSharding(mesh, PartitionSpec("data"))
   return [jax.device_put(x, sharding) for x in arrays]

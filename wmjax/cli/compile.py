@@ -20,7 +20,7 @@ def run(args, extra) -> int:
   setting does not fit."""
   import jax
 
-  from wmjax.train import fit
+  from wmjax.train import aot, fit
   name, _, count = args.target.partition(":")
   if name == "cpu" and count.isdigit():  # simulated devices, before the backend starts
     jax.config.update("jax_num_cpu_devices", int(count))
@@ -30,7 +30,7 @@ def run(args, extra) -> int:
   except ValueError as e:
     raise SystemExit(f"wmjax compile: {e}") from e
   budget = None if args.budget_gib is None else int(args.budget_gib * fit.GIB)
-  report = fit.compile_report(config, target, args.what, args.batch, budget,
+  report = aot.compile_report(config, target, args.what, args.batch, budget,
                               log=lambda line: print(line, flush=True))
   print(fit.describe(report))
   if "auto_fit" in report:

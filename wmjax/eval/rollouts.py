@@ -51,7 +51,8 @@ def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, 
                  frechet: FrechetDistances | None = None, baseline: bool = True,
                  task: FrameMetrics | None = None) -> Outcome:
   """Roll out every trajectory from its frames ``[first, first + context)`` under its actions
-  (batches of ``batch_size``, padded so that one compilation serves all) and score the frames
+  (batches of ``batch_size``, padded so that one compilation serves all; the frames encoded by
+  the model's codec, or the trajectories' own latents where they carry them) and score the frames
   from ``first + context`` on against the truth (and feed ``frechet``, if given); the
   copy-last-frame baseline is scored too unless ``baseline`` is False; ``task`` adds the
   dataset's own metrics (:func:`wmjax.eval.metrics.frame_metrics`)."""
@@ -72,7 +73,8 @@ def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, 
     encode_key, rollout_key = jax.random.split(jax.random.fold_in(rng, index))
     frames, actions, mask = shard_rollout_batch(  # the batch is split over the local devices
         to_model(batch.frames[:, first:]), batch.actions, known)
-    latents = model.codec.encode(frames, encode_key)
+    latents = (model.codec.encode(frames, encode_key) if batch.latents is None
+               else shard_rollout_batch(batch.latents[:, first:])[0])
     generated = rollout(
         model.world_model, model.params, latents[:, :context], actions[:, start - 1:],
         rollout_key, horizon=horizon, action_mask=mask[:, start - 1:],

@@ -17,7 +17,8 @@ from wmjax.data.sources import ArrayRecordEpisodes
 class Trajectories:
   """Held-out trajectories padded to a common length ``T``: frames uint8 ``[E, T, H, W, 3]``,
   normalised actions ``[E, T-1, A]``, true lengths ``[E]``, per-step extras ``[E, T, ...]``
-  (e.g. ``square_positions``, ``masks``), and where each came from (episode, start step)."""
+  (e.g. ``square_positions``, ``masks``), where each came from (episode, start step), and, for
+  pre-encoded data, the model's frames ``[E, T, h, w, c]`` the RGB frames were decoded from."""
 
   frames: np.ndarray
   actions: np.ndarray
@@ -25,6 +26,7 @@ class Trajectories:
   extras: dict[str, np.ndarray]
   episode: np.ndarray
   start: np.ndarray
+  latents: np.ndarray | None = None  # None: the model's frames are the RGB frames encoded
 
   def __len__(self) -> int:
     return len(self.frames)
@@ -51,7 +53,7 @@ class Trajectories:
   def take(self, index) -> "Trajectories":
     return Trajectories(self.frames[index], self.actions[index], self.lengths[index],
                         {k: v[index] for k, v in self.extras.items()}, self.episode[index],
-                        self.start[index])
+                        self.start[index], None if self.latents is None else self.latents[index])
 
 
 def windows_of(episodes: ArrayRecordEpisodes, length: int, resolution, limit: int | None

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import os
 
+import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
@@ -25,6 +26,8 @@ from wmjax.data.pipeline import Normalize, WindowSource, frames_to_float
 from wmjax.data.rlds import stack_steps
 from wmjax.data.sources import member_configs, open_dataset
 from wmjax.data.stats import ActionStats
+from wmjax.eval.trajectories import Trajectories
+from wmjax.frames import to_model, to_uint8
 
 
 @dataclasses.dataclass
@@ -115,9 +118,10 @@ def build_data(config: ml_collections.ConfigDict, evaluation: bool = True) -> Tr
   return TrainData(members, codec, kinds.pop())
 
 
-def eval_windows(data: TrainData, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
-  """The fixed held-out windows evaluated during training (shared out among the members),
-  normalised and batched."""
+def _held_out_windows(data: TrainData, config: ml_collections.ConfigDict
+                      ) -> dict[str, np.ndarray]:
+  """``train.eval_windows`` held-out windows (shared out among the members), normalised and
+  stacked, their frames as read (uint8 RGB or pre-encoded latents)."""
   total = config.train.eval_windows
   windows = []
   for i, member in enumerate(data.members):
@@ -125,4 +129,27 @@ def eval_windows(data: TrainData, config: ml_collections.ConfigDict) -> dict[str
     normalize = Normalize(member.stats, config.data.normalization, config.model.action_dim, i,
                           keep_extras=len(data.members) == 1)
     windows += [normalize(member.eval[k]) for k in range(count)]
-  return frames_to_float(stack_steps(windows[:total]))
+  return stack_steps(windows[:total])
+
+
+def eval_windows(data: TrainData, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
+  """The fixed held-out windows evaluated during training, normalised and batched, their frames
+  float32 (RGB in [-1, 1] or latents)."""
+  return frames_to_float(_held_out_windows(data, config))
+
+
+def eval_trajectories(data: TrainData, config: ml_collections.ConfigDict) -> Trajectories:
+  """The windows of :func:`eval_windows` as trajectories to roll out
+  (:func:`wmjax.eval.rollouts.run_rollouts`): uint8 RGB frames ``[E, F, H, W, 3]``, normalised
+  actions ``[E, F-1, A]`` and the per-frame extras; pre-encoded latents are kept as the
+  trajectories' latents (float32) and decoded by the codec for their RGB frames."""
+  windows = _held_out_windows(data, config)
+  frames, latents = windows["frames"], None
+  if data.latents:
+    latents = to_model(frames)
+    frames = to_uint8(data.codec.decode(jnp.asarray(latents)))
+  count, length = frames.shape[:2]
+  extras = {k: v for k, v in windows.items() if k not in ("frames", "actions")
+            and np.ndim(v) >= 2 and np.shape(v)[1] == length}
+  return Trajectories(frames, windows["actions"], np.full(count, length), extras,
+                      windows["episode"], windows["start"], latents)

@@ -1,8 +1,9 @@
-"""Compile the train step for a device target, with or without its hardware, and fit a config.
+"""Device targets, the memory a compiled program needs on one of them, and the choice of remat and
+gradient accumulation that makes a train step fit.
 
-``compile_train(config, target, batch)`` builds the exact sharded train step of
-:class:`wmjax.train.step.ShardedTrainer` on the target's devices and compiles it; XLA's memory
-analysis then says what one device needs (arguments, outputs, temporaries). Targets:
+A target is a set of devices to compile for, with or without their hardware; XLA's memory
+analysis of a program compiled for it says what one device needs (arguments, outputs,
+temporaries). Targets:
 
 ``cpu:N``          N host devices (simulated: ``jax_num_cpu_devices``)
 ``h100[:N]``       N H100 80GB; ``h200[:N]`` (141 GB), ``a100[:N]`` (A100 80GB) — compiled on any
@@ -10,9 +11,11 @@ analysis then says what one device needs (arguments, outputs, temporaries). Targ
 ``v5p:2x2x1`` ...  a Cloud TPU topology (``v4``, ``v5e``, ``v5p``, ``v6e``); needs libtpu
 ``local``          the devices this process sees (what the trainer uses)
 
-``fit_train(config, target, batch)`` climbs the ladder remat none -> dots -> full, then
-gradient-accumulation micro-batches 2, 4, 8, ... (with full remat) from the config's own setting
-until the compiled step fits the device's memory, and says what it chose and what it tried.
+:func:`fit_step` climbs the ladder remat none -> dots -> full, then gradient-accumulation
+micro-batches 2, 4, 8, ... (with full remat) from the config's own setting until the compiled
+step fits the device's memory, and says what it chose and what it tried. It only chooses: the
+step of each setting is built and compiled by the caller (:mod:`wmjax.train.context`, which
+builds the mesh, the model and the trainer of a run in one place).
 """
 
 from __future__ import annotations
@@ -21,18 +24,12 @@ import copy
 import dataclasses
 import os
 import re
-import time
+from typing import Any, Callable
 
 import jax
-import jax.numpy as jnp
 import ml_collections
 
-from wmjax import parallel
-from wmjax.nn import attention, forward_flops
-from wmjax.model import WorldModel
-from wmjax.rollout import block_flops, rollout
 from wmjax.errors import RunError
-from wmjax.train.step import ShardedTrainer
 
 GIB = 1024 ** 3
 REMAT_LADDER = ("none", "dots", "full")
@@ -193,87 +190,6 @@ def refused_report(error: Exception, target: Target, budget_bytes: int | None = 
   }
 
 
-def compile_step(config: ml_collections.ConfigDict, target: Target, batch: int | None = None,
-                 budget_bytes: int | None = None
-                 ) -> tuple[ShardedTrainer, jax.stages.Compiled, dict]:
-  """The sharded train step of ``config`` compiled for ``target`` at global ``batch`` (default
-  ``config.batch_size``) -> (trainer, compiled step, report): per-device memory (GiB) and whether
-  it fits (:func:`memory_report`), the mesh, the attention path, XLA's and the analytic FLOPs and
-  the compile time. The trainer's :meth:`~ShardedTrainer.step` reuses the compiled step. A step
-  the compiler refuses for want of memory comes back as None with :func:`refused_report`."""
-  world_model = WorldModel.from_config(config)
-  net = world_model.network
-  batch = batch or config.batch_size
-  frames = config.data.frames if "data" in config else net.num_frames
-  shape = tuple(config.frame_shape)
-  mesh = parallel.make_mesh(tuple(config.mesh), list(target.devices))
-  parallel.check_batch_divisible(batch, mesh, what="global batch_size")
-  start = time.perf_counter()
-  with attention.platform_override(target.platform):
-    trainer = ShardedTrainer(world_model, config, mesh, shape, frames)
-    frames_struct = jax.ShapeDtypeStruct((batch, frames) + shape, jnp.float32,
-                                         sharding=trainer.batch_sharding)
-    actions_struct = jax.ShapeDtypeStruct((batch, frames - 1, net.action_dim), jnp.float32,
-                                          sharding=trainer.batch_sharding)
-    try:
-      compiled = trainer.compile(trainer.abstract_state, frames_struct, actions_struct)
-      memory = memory_report(compiled, target, budget_bytes)
-    except jax.errors.JaxRuntimeError as e:
-      compiled, memory = None, refused_report(e, target, budget_bytes)
-      if memory is None:
-        raise
-  report = {
-      "what": "train", "target": target.spec, "platform": target.platform,
-      "devices": len(target.devices), "mesh": dict(mesh.shape), "batch": batch, "frames": frames,
-      "remat": net.remat, "grad_accum": trainer.micro_batches, "dtype": str(net.dtype),
-      "attention": attention.resolve_backend(net.attention_impl, net.dtype, target.platform),
-      **memory,
-      "analytic_flops": 3 * forward_flops(net, batch, frames, shape[0], shape[1]),
-      "compile_s": time.perf_counter() - start,
-  }
-  return trainer, compiled, report
-
-
-def compile_train(config: ml_collections.ConfigDict, target: Target, batch: int | None = None,
-                  budget_bytes: int | None = None) -> dict:
-  """The report of :func:`compile_step`."""
-  return compile_step(config, target, batch, budget_bytes)[2]
-
-
-def compile_rollout(config: ml_collections.ConfigDict, target: Target, batch: int | None = None,
-                    budget_bytes: int | None = None) -> dict:
-  """One rollout block (``rollout.context`` frames in, ``rollout.horizon`` out, with the config's
-  sampler) jitted and compiled for the first device of ``target`` at ``batch`` rollouts (default
-  8) -> the report of :func:`compile_step` for it."""
-  world_model = WorldModel.from_config(config)
-  net = world_model.network
-  batch = batch or 8
-  c, h = config.rollout.context, config.rollout.horizon
-  shape = tuple(config.frame_shape)
-  device = jax.sharding.SingleDeviceSharding(target.devices[0])
-  start = time.perf_counter()
-  with attention.platform_override(target.platform):
-    params = jax.eval_shape(lambda: world_model.init(jax.random.key(0), shape, frames=c + h))
-    params = jax.tree.map(lambda p: jax.ShapeDtypeStruct(p.shape, p.dtype, sharding=device),
-                          params)
-    run = jax.jit(lambda p, context, actions, key: rollout(
-        world_model, p, context, actions, jax.random.wrap_key_data(key), horizon=h))
-    compiled = run.lower(
-        params, jax.ShapeDtypeStruct((batch, c) + shape, jnp.float32, sharding=device),
-        jax.ShapeDtypeStruct((batch, h, net.action_dim), jnp.float32, sharding=device),
-        jax.ShapeDtypeStruct((2,), jnp.uint32, sharding=device)).compile()
-  calls = world_model.sampler.model_calls(h) * (2 if world_model.guided else 1)
-  return {
-      "what": "rollout", "target": target.spec, "platform": target.platform, "devices": 1,
-      "batch": batch, "context": c, "horizon": h, "sampler": config.sampling.sampler,
-      "model_calls": calls, "dtype": str(net.dtype),
-      "attention": attention.resolve_backend(net.attention_impl, net.dtype, target.platform),
-      **memory_report(compiled, target, budget_bytes),
-      "analytic_flops": block_flops(world_model, batch, c, h, shape[0], shape[1]),
-      "compile_s": time.perf_counter() - start,
-  }
-
-
 def fit_ladder(config: ml_collections.ConfigDict, batch: int, data_parallel: int
                ) -> list[tuple[str, int]]:
   """(remat, grad_accum) settings from the config's own upward: more remat first, then more
@@ -329,28 +245,29 @@ def _gib(value: float | None) -> str:
   return "an unknown number of" if value is None else f"{value:.3g}"
 
 
-def fit_step(config: ml_collections.ConfigDict, target: Target, budget_bytes: int | None = None,
-             batch: int | None = None, first: tuple | None = None, log=print
-             ) -> tuple[ml_collections.ConfigDict, ShardedTrainer, dict]:
-  """The first setting of :func:`fit_ladder` whose compiled step fits ``budget_bytes`` (default:
-  what the target's allocator may take) -> (config with that setting, its trainer with the step
-  compiled, its report with ``tried``). ``first``: the (trainer, compiled, report) of the config's
-  own setting if already compiled. :class:`DoesNotFitError` naming the smallest setting tried and
-  its size when none fits."""
+# measure(remat, grad_accum) -> (what it built, its report): the step of that setting compiled
+Measure = Callable[[str, int], tuple[Any, dict]]
+
+
+def fit_step(config: ml_collections.ConfigDict, target: Target, measure: Measure,
+             data_parallel: int, budget_bytes: int | None = None, batch: int | None = None,
+             first: tuple[Any, dict] | None = None, log=print) -> tuple[Any, dict]:
+  """The first setting of :func:`fit_ladder` whose step, as ``measure`` compiles it, fits
+  ``budget_bytes`` (default: what the target's allocator may take) -> (what ``measure`` built for
+  it, its report with ``tried``). ``data_parallel``: the devices the global ``batch`` (default
+  ``config.batch_size``) is split over; ``first``: the (built, report) of the config's own
+  setting if already compiled. :class:`DoesNotFitError` naming the smallest setting tried and its
+  size when none fits."""
   limit = _limit(target, budget_bytes)
-  batch = batch or config.batch_size
-  mesh = parallel.make_mesh(tuple(config.mesh), list(target.devices))
   tried = []
-  for i, (remat, accum) in enumerate(fit_ladder(config, batch,
-                                                mesh.shape["data"] * mesh.shape["fsdp"])):
-    candidate = with_setting(config, remat, accum)
-    trainer, _, report = (first if i == 0 and first is not None else
-                          compile_step(candidate, target, batch, limit))
+  for i, (remat, accum) in enumerate(fit_ladder(config, batch or config.batch_size,
+                                                data_parallel)):
+    built, report = first if i == 0 and first is not None else measure(remat, accum)
     tried.append({"remat": remat, "grad_accum": accum, "total_gib": report["total_gib"]})
     log(f"fit: {describe(report)}")
     if report["fits"]:
       report["tried"] = tried
-      return candidate, trainer, report
+      return built, report
   smallest = min(tried, key=lambda t: float("inf") if t["total_gib"] is None else t["total_gib"])
   raise DoesNotFitError(
       f"no setting fits {limit / GIB:.3g} GiB per device on {target.spec}: the smallest tried, "
@@ -359,53 +276,34 @@ def fit_step(config: ml_collections.ConfigDict, target: Target, budget_bytes: in
       f"smaller batch or a smaller model")
 
 
-def fit_train(config: ml_collections.ConfigDict, target: Target, budget_bytes: int | None = None,
-              batch: int | None = None, log=print) -> tuple[ml_collections.ConfigDict, dict]:
-  """(fitted config, report) of :func:`fit_step`."""
-  fitted, _, report = fit_step(config, target, budget_bytes, batch, log=log)
-  return fitted, report
-
-
-def fit_for_training(config: ml_collections.ConfigDict, log=print
-                     ) -> tuple[ml_collections.ConfigDict, ShardedTrainer, dict]:
-  """Before the first step: compile the step on this process's devices, compare it with the
-  device's limit (the allocator's ``bytes_limit`` on GPU / TPU, ``train.memory_budget_gib`` when
-  set and on CPU) and, with ``train.auto_fit``, climb :func:`fit_ladder` until it fits ->
-  (config as trained, trainer with the step compiled, report). Without a known limit (CPU and no
-  budget) the config is kept as it is. :class:`DoesNotFitError` when the step cannot fit."""
+def training_budget(config: ml_collections.ConfigDict, target: Target) -> int | None:
+  """Bytes the train step may take on one device of ``target``: ``train.memory_budget_gib`` when
+  set, else what the allocator may take (None where unknown: the host CPU)."""
   budget = config.train.memory_budget_gib
-  target = parse_target("local")
-  limit = int(budget * GIB) if budget else usable_memory(target)
-  first = compile_step(config, target, budget_bytes=limit)
-  report = first[2]
+  return int(budget * GIB) if budget else usable_memory(target)
+
+
+def fit_for_training(config: ml_collections.ConfigDict, target: Target, measure: Measure,
+                     data_parallel: int, first: tuple[Any, dict], log=print
+                     ) -> tuple[Any, dict]:
+  """Before the first step: ``first``, the (built, report) of the config's own setting compiled
+  against :func:`training_budget`, when it fits or no limit is known (the host CPU without a
+  budget); else, with ``train.auto_fit``, the first setting of :func:`fit_step` that fits ->
+  (built, report). :class:`DoesNotFitError` when the step cannot fit."""
+  report = first[1]
   if report["fits"] is None or report["fits"]:
     log(f"compiled step: {describe(report)}"
         + ("; no memory limit known here (set train.memory_budget_gib to check one)"
            if report["fits"] is None else ""))
-    return config, first[0], report
+    return first
   if not config.train.auto_fit:
     raise DoesNotFitError(f"the compiled step does not fit: {describe(report)}; set "
                           f"train.auto_fit=True to choose remat and gradient accumulation, or "
                           f"lower batch_size")
-  fitted, trainer, report = fit_step(config, target, limit, first=first, log=log)
-  log(f"auto_fit chose model.remat={report['remat']!r} optim.grad_accum={report['grad_accum']}: "
-      f"{report['total_gib']:.3g} GiB per device of {report['limit_gib']:.3g} (the config's "
+  built, chosen = fit_step(config, target, measure, data_parallel,
+                           training_budget(config, target), first=first, log=log)
+  log(f"auto_fit chose model.remat={chosen['remat']!r} optim.grad_accum={chosen['grad_accum']}: "
+      f"{chosen['total_gib']:.3g} GiB per device of {chosen['limit_gib']:.3g} (the config's "
       f"remat={config.model.remat!r} grad_accum={config.optim.grad_accum} needs "
-      f"{_gib(first[2]['total_gib'])})")
-  return fitted, trainer, report
-
-
-def compile_report(config: ml_collections.ConfigDict, target: Target, what: str = "train",
-                   batch: int | None = None, budget_bytes: int | None = None, log=print) -> dict:
-  """The report of :func:`compile_step` (``what='train'``) or :func:`compile_rollout`
-  (``'rollout'``) for ``target``. A train step that does not fit also gets ``auto_fit``: the
-  setting :func:`fit_step` would choose (remat, grad_accum, its size and what was tried)."""
-  if what == "rollout":
-    return compile_rollout(config, target, batch, budget_bytes)
-  first = compile_step(config, target, batch, budget_bytes)
-  report = first[2]
-  if report["fits"] is False:
-    _, _, chosen = fit_step(config, target, budget_bytes, batch, first=first, log=log)
-    report["auto_fit"] = {"remat": chosen["remat"], "grad_accum": chosen["grad_accum"],
-                          "total_gib": chosen["total_gib"], "tried": chosen["tried"]}
-  return report
+      f"{_gib(report['total_gib'])})")
+  return built, chosen

@@ -37,5 +37,5 @@ def config_info(config: ml_collections.ConfigDict, devices: int | None = None,
   }
   if "batch_size" in config and "mesh" in config:
     from wmjax.train import memory
-    info["train_memory_per_device"] = memory.estimate(config, devices)
+    info["train_memory_per_device"] = memory.estimate(config, wm, devices)
   return info

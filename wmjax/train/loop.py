@@ -25,7 +25,6 @@ Workdir layout: ``checkpoints/``, ``tensorboard/``, ``metrics.jsonl``, ``samples
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import functools
 import hashlib
 import json
@@ -43,24 +42,24 @@ import ml_collections
 import numpy as np
 
 from wmjax import parallel
-from wmjax.codecs import Codec, PixelCodec
+from wmjax.codecs import PixelCodec
 from wmjax.data.pipeline import training_pipeline
 from wmjax.diffusion import LevelSampling, diffusion_loss
 from wmjax.errors import CheckpointError, RunError
-from wmjax.eval.metrics import frame_metrics
+from wmjax.eval.rollouts import run_rollouts
+from wmjax.eval.trajectories import Trajectories
 from wmjax.eval.video import comparison, stack_rows, write_video
-from wmjax.model import WorldModel
-from wmjax.registry import FrameMetrics, frame_metrics_of
-from wmjax.rollout import rollout
+from wmjax.frames import to_model
+from wmjax.model import LoadedModel, WorldModel
+from wmjax.registry import frame_metrics_of
 from wmjax.tasks import with_task
-from wmjax.train import fit, memory
 from wmjax.train.checkpoint import Checkpointer, shapes_by_path
-from wmjax.train.data import build_data, eval_windows
+from wmjax.train.context import TrainContext, set_up
+from wmjax.train.data import eval_trajectories
 from wmjax.train.resume import check_resume
 from wmjax.train.step import ShardedTrainer
 from wmjax.train.workdir import (METRICS_LOG, WorkdirLock, make_workdir, record_config_changes,
                                  remove_empty_dirs, truncate_metrics_log)
-
 
 LIBRARY_LOG = "train.log"  # orbax's and asyncio's warnings and errors during training
 
@@ -74,52 +73,55 @@ class NonFiniteLossError(RunError):
 
 
 @functools.partial(jax.jit, static_argnums=(0, 5, 6, 7))
-def _validation_loss(world_model: WorldModel, params: Any, frames: jax.Array, actions: jax.Array,
-                     rng: jax.Array, regime: str, num_context: int,
-                     level_sampling: LevelSampling) -> jax.Array:
+def _loss(world_model: WorldModel, params: Any, frames: jax.Array, actions: jax.Array,
+          rng: jax.Array, regime: str, num_context: int, level_sampling: LevelSampling
+          ) -> jax.Array:
   def denoise(x, levels):
     return world_model.network.apply(params, x, world_model.process.model_time(levels), actions)
   return diffusion_loss(denoise, world_model.process, frames, rng, regime, num_context,
                         level_sampling)[0]
 
 
-def evaluate(world_model: WorldModel, params: Any, windows: dict[str, np.ndarray],
-             config: ml_collections.ConfigDict, rng: jax.Array, codec: Codec,
-             latents: bool = False, task: FrameMetrics | None = None
-             ) -> tuple[dict, np.ndarray, np.ndarray]:
-  """Validation loss and rollout metrics on ``windows`` (RGB frames, or pre-encoded latents if
-  ``latents``, whose pixel metrics then compare with the codec's reconstructions), with the
-  dataset's own metrics (``task``) from the windows' per-frame extras; returns (metrics, true RGB
-  frames, predicted RGB frames)."""
+def validation_loss(context: TrainContext, params: Any, trajectories: Trajectories,
+                    rng: jax.Array, encode_rng: jax.Array) -> float:
+  """The training loss of ``params`` on held-out ``trajectories`` of the training length (their
+  frames in the model's space: encoded by the codec with ``encode_rng``, or their pre-encoded
+  latents), its noise drawn from ``rng``."""
+  config, codec = context.config, context.data.codec
+  frames = (jnp.asarray(trajectories.latents) if trajectories.latents is not None
+            else codec.encode(to_model(trajectories.frames, jnp), encode_rng))
+  return float(_loss(context.world_model, params, frames, jnp.asarray(trajectories.actions),
+                     rng, config.diffusion.regime, config.diffusion.num_context,
+                     LevelSampling.from_config(config.diffusion)))
+
+
+def evaluate(context: TrainContext, params: Any, trajectories: Trajectories, rng: jax.Array,
+             step: int) -> tuple[dict, list]:
+  """Validation loss and rollout metrics of ``params`` (at train ``step``) on ``trajectories``:
+  :func:`wmjax.eval.rollouts.run_rollouts` from ``rollout.context`` frames in blocks of
+  ``rollout.horizon``, the model and the copy-last-frame baseline scored with the dataset's own
+  metrics, each averaged over the generated frames -> (metrics, up to 4 (truth, prediction)
+  uint8 videos ``[F, H, W, 3]``)."""
+  config, data = context.config, context.data
   loss_rng, rollout_rng, encode_rng = jax.random.split(rng, 3)
-  if latents:
-    frames = jnp.asarray(windows["frames"])
-    truth = np.asarray(codec.decode(frames))
-  else:
-    frames = codec.encode(jnp.asarray(windows["frames"]), encode_rng)
-    truth = windows["frames"]  # already on the host
-  actions = jnp.asarray(windows["actions"])
-  c, h = config.rollout.context, config.rollout.horizon
-  predicted = np.asarray(codec.decode(rollout(world_model, params, frames[:, :c],
-                                              actions[:, c - 1:], rollout_rng, horizon=h)))
-  val_loss = _validation_loss(world_model, params, frames, actions, loss_rng,
-                              config.diffusion.regime, config.diffusion.num_context,
-                              LevelSampling.from_config(config.diffusion))
-  num_frames = windows["frames"].shape[1]
-  extras = {k: v[:, c:] for k, v in windows.items()
-            if k not in ("frames", "actions") and np.ndim(v) >= 2 and np.shape(v)[1] == num_frames}
-  copy_last = np.broadcast_to(truth[:, c - 1:c], truth[:, c:].shape)
-  result = {"val_loss": float(val_loss)}
-  for prefix, candidate in (("rollout", predicted[:, c:]), ("copy_last", copy_last)):
-    for name, values in frame_metrics(candidate, truth[:, c:], extras, task).items():
-      result[f"{prefix}_{name}"] = float(np.nanmean(values))
-  return result, truth, predicted
+  model = LoadedModel(config, context.world_model, params, data.members[0].stats, step,
+                      data.codec)
+  outcome = run_rollouts(model, trajectories, first=0, context=config.rollout.context,
+                         horizon=config.rollout.horizon, rng=rollout_rng,
+                         batch_size=len(trajectories), keep_videos=4,
+                         task=frame_metrics_of(data.members[0].spec.name))
+  result = {"val_loss": validation_loss(context, params, trajectories, loss_rng, encode_rng)}
+  for prefix, per_frame in (("rollout", outcome.model), ("copy_last", outcome.copy_last)):
+    result.update({f"{prefix}_{name}": float(np.nanmean(values))
+                   for name, values in per_frame.items()})
+  return result, outcome.videos
 
 
-def write_samples(path: str, truth: np.ndarray, predicted: np.ndarray, count: int = 4) -> str:
-  """Video (GIF or mp4) with one row per window: ground truth | prediction | difference."""
-  rows = [comparison(truth[i], predicted[i]) for i in range(min(count, len(truth)))]
-  return write_video(path, stack_rows(rows))
+def write_samples(path: str, videos: list[tuple[np.ndarray, np.ndarray]]) -> str:
+  """Video (GIF or mp4) with one row per (truth, prediction) pair: ground truth | prediction |
+  difference."""
+  return write_video(path, stack_rows([comparison(truth, predicted)
+                                       for truth, predicted in videos]))
 
 
 # ----------------------------------------------------------------------------- loop
@@ -277,33 +279,6 @@ def _train_locked(config: ml_collections.ConfigDict, workdir: str,
       lock.release()
 
 
-@dataclasses.dataclass
-class _Setup:
-  """What a run is built from, checked and compiled before any state exists."""
-
-  config: ml_collections.ConfigDict  # as fitted to the device's memory (remat, accumulation)
-  data: Any  # wmjax.train.data.TrainData
-  trainer: ShardedTrainer  # with its mesh and the step compiled
-  say: Any  # print on the chief process, nothing elsewhere
-
-  @property
-  def world_model(self) -> WorldModel:
-    return self.trainer.world_model
-
-
-def _set_up(config: ml_collections.ConfigDict, is_chief: bool) -> _Setup:
-  """Phase 1: data, mesh and model checked against each other, and the step compiled and fitted
-  to the device's memory (the analytic estimate is only a hint beside XLA's figure). The one
-  mesh of the run is the trainer's."""
-  data = build_data(config, evaluation=config.train.eval_every > 0)
-  say = functools.partial(print, flush=True) if is_chief else lambda *_: None
-  say(f"hint: analytic {memory.describe(memory.estimate(config, jax.device_count()))}")
-  config, trainer, _ = fit.fit_for_training(config, log=say)
-  parallel.check_batch_divisible(config.batch_size, trainer.mesh, processes=jax.process_count(),
-                                 what="global batch_size")
-  return _Setup(config, data, trainer, say)
-
-
 class _RunLog:
   """The chief's outputs of a run in ``workdir``: ``config.json``, the metrics log (cut back to
   the step resumed from), TensorBoard events; other processes write nothing."""
@@ -330,11 +305,19 @@ class _RunLog:
                                   "batch": _batch_fingerprint(batch)}) + "\n")
       self._log.flush()
 
-  def evaluation(self, step: int, result: dict, truth, predicted, samples: str) -> None:
+  def evaluation(self, step: int, result: dict, videos: list, samples: str) -> None:
     if self.is_chief:
       for key, value in result.items():
         self.writer.add_scalar(f"eval/{key}", value, step)
-      write_samples(samples, truth, predicted)
+      write_samples(samples, videos)
+
+  def final(self, step: int, result: dict) -> None:
+    """``metrics.json`` and the final metrics as TensorBoard scalars."""
+    if self.is_chief:
+      with open(os.path.join(self.workdir, "metrics.json"), "w") as f:
+        json.dump(result, f, indent=2)
+      for key, value in result.items():
+        self.writer.add_scalar(f"eval/{key}", value, step)
 
   def close(self) -> None:
     for handle in (self.writer, self._log):
@@ -357,140 +340,194 @@ def _stop_message(checkpoints: Checkpointer, config: ml_collections.ConfigDict,
              else "") + ".")
 
 
-def _train(config: ml_collections.ConfigDict, workdir: str,
-           allow: tuple[str, ...]) -> tuple[Any, dict]:
-  """The phases of a run: set up (:func:`_set_up`), restore or initialise the state, the steps
-  (logging, checkpoints, evaluation, a signal's stop), the final save and evaluation."""
-  from tqdm import tqdm
+def _training_batches(context: TrainContext, start: int):
+  """This process's batches from step ``start`` on (batch k is a function of k alone, so the
+  data reads on from a resumed step): frames ``[B/P, F, H, W, C]``, normalised actions."""
+  config, members = context.config, context.data.members
+  return iter(training_pipeline(
+      [m.train for m in members], [m.stats for m in members],
+      weights=[m.weight for m in members], batch_size=config.batch_size // jax.process_count(),
+      seed=config.seed, normalization=config.data.normalization,
+      action_dim=config.model.action_dim, num_workers=config.data.num_workers, start=start))
 
-  is_chief = jax.process_index() == 0
-  run = _set_up(config, is_chief)
-  config, data, world_model = run.config, run.data, run.world_model
-  config_dict, stats_dict = json.loads(config.to_json()), data.stats_dict()
-  num_steps, train_cfg = config.train.num_steps, config.train
-  # RGB batches -> latents on the device (unless they were pre-encoded)
-  encode_frames = not data.latents and not isinstance(data.codec, PixelCodec)
-  encode_key = jax.random.key(config.seed + 1)
-  checkpoints = Checkpointer(os.path.join(workdir, "checkpoints"), train_cfg.max_checkpoints)
-  outputs = iterator = bar = None
-  stop = _StopFlag()
-  try:
-    # phase 2: the state, restored or new
-    resumed = _resume(checkpoints, run.trainer, config, workdir, allow, is_chief)
+
+class _Run:
+  """A run between its set-up and its end: the context it trains with, the state and its step,
+  the batches, the checkpoints and outputs, and a signal's request to stop."""
+
+  def __init__(self, context: TrainContext, workdir: str, is_chief: bool):
+    self.context, self.config, self.workdir, self.is_chief = (context, context.config, workdir,
+                                                              is_chief)
+    self.saved_with = json.loads(self.config.to_json()), context.data.stats_dict()
+    # RGB batches -> latents on the device (unless they were pre-encoded)
+    self.encode_frames = not context.data.latents and not isinstance(context.data.codec,
+                                                                     PixelCodec)
+    self.encode_key = jax.random.key(self.config.seed + 1)
+    self.checkpoints = Checkpointer(os.path.join(workdir, "checkpoints"),
+                                    self.config.train.max_checkpoints)
+    self.stop = _StopFlag()
+    self.state = self.step_metrics = self.batches = self.outputs = self.bar = None
+    self.trajectories: Trajectories | None = None  # held out, when the run evaluates
+    self.start = self.step = 0
+
+  def begin(self, allow: tuple[str, ...]) -> None:
+    """The state restored from the newest checkpoint that reads back, or new; the batches from
+    its step on, the held-out trajectories and the outputs."""
+    resumed = _resume(self.checkpoints, self.context.trainer, self.config, self.workdir, allow,
+                      self.is_chief)
     if resumed is None:
-      state, start = run.trainer.init(jax.random.key(config.seed)), 0
+      self.state, self.start = self.context.trainer.init(jax.random.key(self.config.seed)), 0
     else:
-      state, start = resumed
-      print(f"resumed from step {start} in {checkpoints.directory}", flush=True)
-    # batch k is a function of k alone, so the data reads on from the step
-    iterator = iter(training_pipeline(
-        [m.train for m in data.members], [m.stats for m in data.members],
-        weights=[m.weight for m in data.members],
-        batch_size=config.batch_size // jax.process_count(),
-        seed=config.seed, normalization=config.data.normalization,
-        action_dim=config.model.action_dim, num_workers=config.data.num_workers, start=start))
-    evaluating = train_cfg.eval_every > 0
-    windows = eval_windows(data, config) if evaluating else None
-    task = frame_metrics_of(data.members[0].spec.name)
-    outputs = _RunLog(workdir, config, start, is_chief)
-    step = start
-    step_metrics = None
+      self.state, self.start = resumed
+      print(f"resumed from step {self.start} in {self.checkpoints.directory}", flush=True)
+    self.step = self.start
+    self.batches = _training_batches(self.context, self.start)
+    if self.config.train.eval_every > 0:
+      self.trajectories = eval_trajectories(self.context.data, self.config)
+    self.outputs = _RunLog(self.workdir, self.config, self.start, self.is_chief)
 
-    def save(step):
-      if not bool(_all_finite(state)):
-        raise NonFiniteLossError(_stop_message(checkpoints, config, (
-            f"the train state at step {step} holds NaN or inf values and was not saved")))
-      checkpoints.save(step, state, config_dict, stats_dict)
-
-    def check_finite(loss, step):
-      if not np.isfinite(loss):
-        raise NonFiniteLossError(_stop_message(checkpoints, config,
-                                               f"loss is {loss} at step {step}"))
-
-    def evaluate_now(step):
-      result, truth, predicted = evaluate(world_model, state.ema_params, windows, config,
-                                          jax.random.key(step), data.codec, data.latents, task)
-      return result, truth, predicted
-
-    # phase 3: the steps
-    bar = tqdm(total=num_steps, initial=start, disable=not is_chief, desc="train",
-               dynamic_ncols=True)
+  def steps(self) -> None:
+    """The steps up to ``train.num_steps`` or a signal, logging, saving and evaluating on the
+    way."""
+    from tqdm import tqdm
+    every, num_steps = self.config.train, self.config.train.num_steps
+    self.bar = tqdm(total=num_steps, initial=self.start, disable=not self.is_chief,
+                    desc="train", dynamic_ncols=True)
     tick = time.perf_counter()
-    while step < num_steps and not stop.requested:
-      try:
-        batch = next(iterator)
-      except Exception:
-        if stop.requested:  # the signal reached the data workers too: save what there is
-          break
-        raise
-      global_batch = parallel.global_batch({k: batch[k] for k in ("frames", "actions")},
-                                           run.trainer.mesh)
-      frames = global_batch["frames"]
-      if encode_frames:  # the latents keep the batch's sharding
-        frames = jax.device_put(data.codec.encode(frames, jax.random.fold_in(encode_key, step)),
-                                frames.sharding)
-      state, step_metrics = run.trainer.step(state, frames, global_batch["actions"])
-      step += 1
-      bar.update(1)
-      checkpoints.poll()  # a background save that failed stops the run now
-      if step % train_cfg.log_every == 0 or step % train_cfg.checkpoint_every == 0:
-        scalars = {k: float(v) for k, v in step_metrics.items()}
-        check_finite(scalars["loss"], step)
-        now = time.perf_counter()
-        scalars["samples_per_s"] = train_cfg.log_every * config.batch_size / (now - tick)
-        tick = now
-        bar.set_postfix(loss=f"{scalars['loss']:.4f}")
-        outputs.training(step, scalars, batch)
-      if step % train_cfg.checkpoint_every == 0:
-        save(step)
-      if evaluating and step % train_cfg.eval_every == 0 and step < num_steps:
-        result, truth, predicted = evaluate_now(step)
-        outputs.evaluation(step, result, truth, predicted,
-                           os.path.join(workdir, "samples", f"step_{step:07d}.gif"))
-        bar.write(f"step {step}: " + ", ".join(f"{k}={v:.4g}" for k, v in result.items()))
-    if stop.requested and step < num_steps:
-      name = signal.Signals(stop.signum).name
-      checkpoints.wait()
-      if step != checkpoints.last_saved and step > start:
-        if step_metrics is not None:
-          check_finite(float(step_metrics["loss"]), step)
-        save(step)
-        checkpoints.wait()
-      saved = (f"saved step {step} to {checkpoints.directory}"
-               if checkpoints.last_saved == step else "no step was trained, nothing to save")
-      bar.write(f"{name}: {saved}; stopped before step {num_steps} (rerun the same command to "
-                f"resume)")
-      return state, {"step": step, "stopped": name, "signal": int(stop.signum)}
-    # phase 4: the last save and evaluation
-    checkpoints.wait()
-    if step != checkpoints.last_saved:
-      check_finite(float(step_metrics["loss"]), step)
-      save(step)
-    checkpoints.wait()
-    bar.close()
+    while self.step < num_steps and not self.stop.requested:
+      batch = self._next_batch()
+      if batch is None:
+        break
+      self._train_on(batch)
+      if self.step % every.log_every == 0 or self.step % every.checkpoint_every == 0:
+        tick = self._log(batch, tick)
+      if self.step % every.checkpoint_every == 0:
+        self._save()
+      if (self.trajectories is not None and self.step % every.eval_every == 0
+          and self.step < num_steps):
+        self._evaluate_into(f"samples/step_{self.step:07d}.gif")
+
+  def _next_batch(self) -> dict | None:
+    """The next batch; None when a signal stopped the data workers too (save what there is)."""
+    try:
+      return next(self.batches)
+    except Exception:
+      if self.stop.requested:
+        return None
+      raise
+
+  def _train_on(self, batch: dict) -> None:
+    """One step on this process's ``batch``, made global over the mesh (encoded to latents on
+    the device where the codec asks for it); a failed background save stops the run here."""
+    trainer = self.context.trainer
+    global_batch = parallel.global_batch({k: batch[k] for k in ("frames", "actions")},
+                                         trainer.mesh)
+    frames = global_batch["frames"]
+    if self.encode_frames:  # the latents keep the batch's sharding
+      key = jax.random.fold_in(self.encode_key, self.step)
+      frames = jax.device_put(self.context.data.codec.encode(frames, key), frames.sharding)
+    self.state, self.step_metrics = trainer.step(self.state, frames, global_batch["actions"])
+    self.step += 1
+    self.bar.update(1)
+    self.checkpoints.poll()
+
+  def _log(self, batch: dict, tick: float) -> float:
+    """The step's scalars (a NaN / inf loss stops the run) and the samples per second since
+    ``tick``, logged; returns the time now."""
+    scalars = {k: float(v) for k, v in self.step_metrics.items()}
+    self._check_finite(scalars["loss"])
+    now = time.perf_counter()
+    scalars["samples_per_s"] = self.config.train.log_every * self.config.batch_size / (now - tick)
+    self.bar.set_postfix(loss=f"{scalars['loss']:.4f}")
+    self.outputs.training(self.step, scalars, batch)
+    return now
+
+  def _evaluate_into(self, samples: str, log: bool = True) -> dict:
+    """:func:`evaluate` of the EMA parameters, its videos written to ``samples`` (in the
+    workdir) and, with ``log``, its metrics logged at the step."""
+    result, videos = evaluate(self.context, self.state.ema_params, self.trajectories,
+                              jax.random.key(self.step), self.step)
+    self.outputs.evaluation(self.step, result if log else {}, videos,
+                            os.path.join(self.workdir, samples))
+    if log:
+      self.bar.write(f"step {self.step}: " + ", ".join(f"{k}={v:.4g}" for k, v in result.items()))
+    return result
+
+  def _check_finite(self, loss: float) -> None:
+    if not np.isfinite(loss):
+      raise NonFiniteLossError(_stop_message(self.checkpoints, self.config,
+                                             f"loss is {loss} at step {self.step}"))
+
+  def _save(self) -> None:
+    """A checkpoint of the step, only of a finite state."""
+    if not bool(_all_finite(self.state)):
+      raise NonFiniteLossError(_stop_message(self.checkpoints, self.config, (
+          f"the train state at step {self.step} holds NaN or inf values and was not saved")))
+    self.checkpoints.save(self.step, self.state, *self.saved_with)
+
+  def _save_last(self) -> None:
+    """The step saved unless it is already (its loss checked first, where a step was run)."""
+    self.checkpoints.wait()
+    if self.step != self.checkpoints.last_saved:
+      if self.step_metrics is not None:
+        self._check_finite(float(self.step_metrics["loss"]))
+      self._save()
+    self.checkpoints.wait()
+
+  def stopped(self) -> dict:
+    """After a signal: the steps trained since the start saved -> ``{'step', 'stopped',
+    'signal'}``."""
+    name = signal.Signals(self.stop.signum).name
+    if self.step > self.start:
+      self._save_last()
+    saved = (f"saved step {self.step} to {self.checkpoints.directory}"
+             if self.checkpoints.last_saved == self.step else
+             "no step was trained, nothing to save")
+    self.bar.write(f"{name}: {saved}; stopped before step {self.config.train.num_steps} (rerun "
+                   f"the same command to resume)")
+    return {"step": self.step, "stopped": name, "signal": int(self.stop.signum)}
+
+  def finish(self) -> dict:
+    """The last step saved and evaluated (``rollout.gif``, ``metrics.json``) -> the metrics."""
+    self._save_last()
+    self.bar.close()
     result = {}
-    if evaluating:
-      result, truth, predicted = evaluate_now(num_steps)
-      outputs.evaluation(step, {}, truth, predicted, os.path.join(workdir, "rollout.gif"))
-    result["step"] = step
-    if is_chief:
-      with open(os.path.join(workdir, "metrics.json"), "w") as f:
-        json.dump(result, f, indent=2)
-      for key, value in result.items():
-        outputs.writer.add_scalar(f"eval/{key}", value, step)
-    return state, result
-  finally:
-    stop.restore()
+    if self.trajectories is not None:
+      result = self._evaluate_into("rollout.gif", log=False)
+    result["step"] = self.step
+    self.outputs.final(self.step, result)
+    return result
+
+  def close(self) -> None:
+    """What the run holds open, closed; a failed background save is raised unless another error
+    is on its way already."""
+    self.stop.restore()
     failing = sys.exc_info()[0] is not None
     try:
-      checkpoints.close()
+      self.checkpoints.close()
     except CheckpointError:
       if not failing:
         raise
     finally:
-      if bar is not None:
-        bar.close()
-      if iterator is not None and hasattr(iterator, "close"):
-        iterator.close()
-      if outputs is not None:
-        outputs.close()
+      for handle in (self.bar, self.batches, self.outputs):
+        if handle is not None and hasattr(handle, "close"):
+          handle.close()
+
+
+def _train(config: ml_collections.ConfigDict, workdir: str,
+           allow: tuple[str, ...]) -> tuple[Any, dict]:
+  """The phases of a run: its context set up once (:func:`wmjax.train.context.set_up`: data,
+  mesh, model, the trainer fitted to memory), the state restored or new, the steps, and the
+  last save and evaluation (or a signal's stop)."""
+  is_chief = jax.process_index() == 0
+  context = set_up(config, log=functools.partial(print, flush=True) if is_chief
+                   else lambda *_: None)
+  run = _Run(context, workdir, is_chief)
+  try:
+    run.begin(allow)
+    run.steps()
+    if run.stop.requested and run.step < context.config.train.num_steps:
+      return run.state, run.stopped()
+    return run.state, run.finish()
+  finally:
+    run.close()

@@ -35,10 +35,11 @@ def _per_token_bytes(hidden: int, dtype_bytes: int, remat: str, heads: int,
   return kept[remat]
 
 
-def estimate(config: ml_collections.ConfigDict, num_devices: int | None = None) -> dict:
-  """Bytes per device of the train state, gradients and activations of ``config``."""
-  from wmjax.model import WorldModel
-  world_model = WorldModel.from_config(config)
+def estimate(config: ml_collections.ConfigDict, world_model, num_devices: int | None = None
+             ) -> dict:
+  """Bytes per device of the train state, gradients and activations of ``config``, whose world
+  model (:class:`wmjax.model.WorldModel`) is ``world_model``, on ``num_devices`` (default: all
+  of this job's)."""
   net = world_model.network
   frames = config.data.frames if "data" in config else net.num_frames
   shapes = jax.eval_shape(lambda: world_model.init(jax.random.key(0), tuple(config.frame_shape),

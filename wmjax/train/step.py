@@ -108,8 +108,10 @@ class ShardedTrainer:
   def __init__(self, world_model: WorldModel, config: ml_collections.ConfigDict, mesh: Mesh,
                frame_shape: tuple[int, int, int], frames: int):
     self.world_model, self.mesh = world_model, mesh
+    self.frame_shape, self.frames = tuple(frame_shape), frames  # of the batches it trains on
     self.micro_batches = config.optim.grad_accum
     self.tx = make_optimizer(config.optim)
+    train_step = make_train_step(world_model, config, self.tx)
 
     def init(rng):
       param_rng, state_rng = jax.random.split(rng)
@@ -123,7 +125,7 @@ class ShardedTrainer:
     self.batch_sharding = parallel.batch_sharding(mesh)
     replicated = NamedSharding(mesh, PartitionSpec())
     self._init = jax.jit(lambda rng: nn.unbox(init(rng)), out_shardings=self.state_shardings)
-    self._step = jax.jit(make_train_step(world_model, config, self.tx),
+    self._step = jax.jit(train_step,
                          in_shardings=(self.state_shardings, self.batch_sharding,
                                        self.batch_sharding),
                          out_shardings=(self.state_shardings, replicated), donate_argnums=0)
