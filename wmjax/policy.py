@@ -82,11 +82,9 @@ class LearnedPolicy:
     return self.module.apply({"params": params}, frames)
 
   def __call__(self, frames: jax.Array, key: jax.Array) -> jax.Array:
-    """Raw actions ``[B, k, A]`` after ``frames [B, c, H, W, 3]`` (in [-1, 1])."""
-    mean, log_std = self.distribution(self.params, frames)
-    normalised = mean + self.temperature * jnp.exp(log_std) * jax.random.normal(key, mean.shape)
-    raw = jnp.clip(self.shift + self.scale * normalised, self.low, self.high)
-    return jnp.where(jnp.asarray(self.controls), raw, 0.0)
+    """Raw actions ``[B, k, A]`` after ``frames [B, c, H, W, 3]`` (in [-1, 1]); compiled once
+    per policy structure and frame shape, also when called from the host step by step."""
+    return _act(self, jnp.asarray(frames, jnp.float32), key)
 
   def normalize(self, raw: jax.Array) -> jax.Array:
     """Raw actions ``[..., A]`` -> the normalised actions the module predicts."""
@@ -112,6 +110,14 @@ class LearnedPolicy:
         "info": info or {}}
     with open(os.path.join(directory, POLICY_FILE), "w") as f:
       json.dump(description, f, indent=2)
+
+
+@jax.jit
+def _act(policy: LearnedPolicy, frames: jax.Array, key: jax.Array) -> jax.Array:
+  mean, log_std = policy.distribution(policy.params, frames)
+  normalised = mean + policy.temperature * jnp.exp(log_std) * jax.random.normal(key, mean.shape)
+  raw = jnp.clip(policy.shift + policy.scale * normalised, policy.low, policy.high)
+  return jnp.where(jnp.asarray(policy.controls), raw, 0.0)
 
 
 def load_policy(directory: str) -> LearnedPolicy:
