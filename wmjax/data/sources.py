@@ -429,7 +429,8 @@ class Splits:
   """What a run reads of one dataset: the episodes of its training split and (where the run
   evaluates) of its evaluation split, the training split's action statistics, the resolution
   ``(H, W)`` its frames are read at and the shape of one frame as read (``(H, W, 3)`` RGB, or the
-  pre-encoded latents' shape)."""
+  pre-encoded latents' shape; their episodes are :class:`wmjax.data.latents.LatentEpisodes`, read
+  alike)."""
 
   train: ArrayRecordEpisodes
   eval: ArrayRecordEpisodes | None
