@@ -16,16 +16,18 @@ import json
 import os
 import re
 import shutil
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import grain
+import ml_collections
 import numpy as np
 from array_record.python.array_record_module import ArrayRecordWriter
 from flax import serialization
 
 from wmjax.data import oxe
 from wmjax.data.rlds import Episode, make_window
-from wmjax.data.sources import ArrayRecordEpisodes, SpecArg
+from wmjax.data.sources import ArrayRecordEpisodes, SpecArg, Splits
+from wmjax.data.stats import ActionStats
 
 METADATA = "wmjax_latents.json"
 
@@ -126,3 +128,19 @@ class LatentEpisodes:
                    instruction=record["instruction"],
                    extras={k: np.asarray(v)[start:stop] for k, v in record["extras"].items()},
                    first_step=start)
+
+
+def open_latent_splits(data: ml_collections.ConfigDict, codec: Mapping | None,
+                       evaluation: bool = True) -> Splits:
+  """The :class:`~wmjax.data.sources.Splits` of the latents in ``data.latents_dir``, which must
+  have been encoded with ``codec`` (a ``config.codec``): their statistics and resolution are
+  those of the dataset they were encoded from."""
+  directory = os.path.expanduser(data.latents_dir)
+  train = LatentEpisodes(directory, data.train_split)
+  meta = train.metadata
+  if meta["codec"] != codec_description(codec):
+    raise ValueError(f"{directory} was encoded with codec {meta['codec']}, but config.codec is "
+                     f"{codec_description(codec)}")
+  held_out = LatentEpisodes(directory, data.eval_split) if evaluation else None
+  return Splits(train, held_out, ActionStats.from_dict(meta["action_stats"]),
+                tuple(meta["resolution"]), tuple(meta["latent_shape"]))

@@ -19,14 +19,18 @@ and the datasets' extras.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import grain
+import ml_collections
 import numpy as np
 
+from wmjax.data.latents import open_latent_splits
+from wmjax.data.oxe import DatasetSpec
 from wmjax.data.rlds import make_window, no_windows_error, window_starts
-from wmjax.data.sources import ArrayRecordEpisodes
+from wmjax.data.sources import ArrayRecordEpisodes, member_configs, open_splits
 from wmjax.data.stats import ActionStats
 from wmjax.frames import to_model
 
@@ -68,6 +72,43 @@ class WindowSource:
     episode, start = (int(v) for v in self.index[k])
     steps = self.episodes.episode(episode, start, start + self.frames)
     return make_window(steps, start, self.frames, self.resolution, episode, self.spec.resize)
+
+
+@dataclasses.dataclass
+class Member:
+  """One dataset of a run: its spec, action statistics, windows and mixture weight, and the shape
+  of one of its frames as read (``(H, W, 3)`` RGB, or pre-encoded ``latents``' own shape)."""
+
+  spec: DatasetSpec
+  stats: ActionStats
+  train: WindowSource
+  eval: WindowSource | None  # None when the run does not evaluate (``train.eval_every=0``)
+  weight: float
+  frame_shape: tuple[int, ...]
+  latents: bool
+
+
+def open_members(data: ml_collections.ConfigDict, codec: Mapping | None,
+                 evaluation: bool = True) -> list[Member]:
+  """Every dataset of ``config.data`` (one, or each ``mixture`` member: see
+  :func:`wmjax.data.sources.member_configs`) as a run reads it: windows of ``data.frames`` frames
+  of its training split and, with ``evaluation``, of its evaluation split, and the training
+  split's statistics. Pre-encoded latents (``latents_dir``) must have been encoded with
+  ``codec`` (``config.codec``); a mixture is all latents or all frames."""
+  members = []
+  for member in member_configs(data):
+    latents = bool(member.latents_dir)
+    splits = (open_latent_splits(member, codec, evaluation) if latents
+              else open_splits(member, evaluation))
+    members.append(Member(
+        splits.train.spec, splits.stats,
+        WindowSource(splits.train, data.frames, member.train_stride, splits.resolution),
+        WindowSource(splits.eval, data.frames, member.eval_stride, splits.resolution)
+        if evaluation else None,
+        float(member.get("weight", 1.0)), splits.frame_shape, latents))
+  if len({m.latents for m in members}) > 1:
+    raise ValueError("a mixture must be all pre-encoded latents or all frames")
+  return members
 
 
 STANDARD_KEYS = ("frames", "actions", "instruction", "episode", "start")

@@ -20,7 +20,7 @@ import json
 import logging
 import os
 import re
-from typing import Any, Iterator, Mapping, Sequence, Union
+from typing import Any, Iterable, Iterator, Mapping, Sequence, Union
 
 import ml_collections
 import numpy as np
@@ -272,6 +272,17 @@ class ArrayRecordEpisodes:
       self._lengths = np.where(missing, 0, lengths)
     return self._lengths
 
+  def with_camera(self) -> Iterator[Episode]:
+    """Every episode that has the spec's camera, in order (read as they are iterated)."""
+    for index, length in enumerate(self.lengths()):
+      if length > 0:
+        yield self.episode(index)
+
+  def action_stats(self) -> ActionStats:
+    """The action statistics of this split (as :func:`action_stats` computes and caches them),
+    read from these episodes."""
+    return _cached_stats(self.builder_dir, self.split, self.spec, self.with_camera())
+
 
 def tfrecord_episodes(builder_dir: str, split: str, spec: SpecArg = None,
                       shuffle_files: bool = False) -> Iterator[Episode]:
@@ -311,11 +322,11 @@ def tfrecord_episodes(builder_dir: str, split: str, spec: SpecArg = None,
 
 def read_episodes(builder_dir: str, split: str, spec: SpecArg = None) -> Iterator[Episode]:
   """Every episode of a split that has the spec's camera, in order, by the path its file format
-  needs (ArrayRecord: random access; TFRecord: tf.data)."""
+  needs (ArrayRecord: random access; TFRecord: tf.data), opened when first iterated."""
   if open_builder(builder_dir).info.file_format.value == "array_record":
-    source = ArrayRecordEpisodes(builder_dir, split, spec)
-    return (source.episode(i) for i, n in enumerate(source.lengths()) if n > 0)
-  return tfrecord_episodes(builder_dir, split, spec)
+    yield from ArrayRecordEpisodes(builder_dir, split, spec).with_camera()
+  else:
+    yield from tfrecord_episodes(builder_dir, split, spec)
 
 
 def stats_filename(split: str, spec: oxe.DatasetSpec) -> str:
@@ -331,17 +342,26 @@ def action_stats(builder_dir: str, split: str = "train", spec: SpecArg = None,
   builder = open_builder(builder_dir)
   _check_split(builder, builder_dir, split)
   resolved = resolve(builder, spec)
-  filename = stats_filename(split, resolved)
+  return _cached_stats(builder_dir, split, resolved, read_episodes(builder_dir, split, resolved),
+                       recompute)
+
+
+def _cached_stats(builder_dir: str, split: str, spec: oxe.DatasetSpec,
+                  episodes: Iterable[Episode], recompute: bool = False) -> ActionStats:
+  """The statistics of ``split`` read with the resolved ``spec`` from their cache
+  (:func:`stats_filename`), else computed from its ``episodes`` (those with the spec's camera, a
+  lazy iterable: not read when the cache answers) and cached."""
+  filename = stats_filename(split, spec)
   cached = None if recompute else read_cached_json(builder_dir, filename)
   if cached is not None:
     return ActionStats.from_dict(cached)
   # The last step's action leads nowhere and never enters a window.
-  actions = [e.actions[:-1] for e in read_episodes(builder_dir, split, resolved)]
+  actions = [e.actions[:-1] for e in episodes]
   if not actions:
     raise ValueError(f"{builder_dir} [{split}] has no episode to compute action statistics from")
-  stats = ActionStats.compute(np.concatenate(actions), resolved.name, resolved.gripper_dim)
+  stats = ActionStats.compute(np.concatenate(actions), spec.name, spec.gripper_dim)
   write_cached_json(builder_dir, filename, dict(stats.to_dict(), split=split,
-                                                spec=resolved.to_dict()))
+                                                spec=spec.to_dict()))
   return stats
 
 
@@ -402,3 +422,28 @@ def open_dataset(data: ml_collections.ConfigDict) -> ConfiguredDataset:
   """The dataset of a data config (see :func:`dataset_dir` and
   :func:`wmjax.data.oxe.specs_from_config`)."""
   return ConfiguredDataset(data, dataset_dir(data), oxe.specs_from_config(data))
+
+
+@dataclasses.dataclass(frozen=True)
+class Splits:
+  """What a run reads of one dataset: the episodes of its training split and (where the run
+  evaluates) of its evaluation split, the training split's action statistics, the resolution
+  ``(H, W)`` its frames are read at and the shape of one frame as read (``(H, W, 3)`` RGB, or the
+  pre-encoded latents' shape; their episodes are :class:`wmjax.data.latents.LatentEpisodes`, read
+  alike)."""
+
+  train: ArrayRecordEpisodes
+  eval: ArrayRecordEpisodes | None
+  stats: ActionStats
+  resolution: tuple[int, int]
+  frame_shape: tuple[int, ...]
+
+
+def open_splits(data: ml_collections.ConfigDict, evaluation: bool = True) -> Splits:
+  """The :class:`Splits` of the dataset a data config names (:func:`open_dataset`):
+  ``data.train_split``, and ``data.eval_split`` with ``evaluation``."""
+  dataset = open_dataset(data)
+  train = dataset.split(data.train_split)
+  held_out = dataset.split(data.eval_split) if evaluation else None
+  resolution = dataset.resolution(train.spec)
+  return Splits(train, held_out, train.action_stats(), resolution, resolution + (3,))

@@ -60,8 +60,8 @@ def _trainer(world_model: WorldModel, config: ml_collections.ConfigDict, mesh: M
   """The trainer of ``world_model`` on windows of ``data.frames`` frames (the model's
   ``num_frames`` for a config without data), its attention built for ``target``'s platform."""
   frames = config.data.frames if "data" in config else world_model.network.num_frames
-  with attention.platform_override(target.platform):
-    return ShardedTrainer(world_model, config, mesh, tuple(config.frame_shape), frames)
+  return ShardedTrainer(world_model, config, mesh, tuple(config.frame_shape), frames,
+                        target.platform)
 
 
 def build_context(config: ml_collections.ConfigDict, target: fit.Target,
@@ -88,18 +88,17 @@ def compile_step(context: TrainContext, batch: int | None = None,
   parallel.check_batch_divisible(batch, context.mesh, processes=jax.process_count(),
                                  what="global batch_size")
   start = time.perf_counter()
-  with attention.platform_override(target.platform):
-    frames = jax.ShapeDtypeStruct((batch, trainer.frames) + trainer.frame_shape, jnp.float32,
-                                  sharding=trainer.batch_sharding)
-    actions = jax.ShapeDtypeStruct((batch, trainer.frames - 1, net.action_dim), jnp.float32,
-                                   sharding=trainer.batch_sharding)
-    try:
-      compiled = trainer.compile(trainer.abstract_state, frames, actions)
-      report = fit.memory_report(compiled, target, budget_bytes)
-    except jax.errors.JaxRuntimeError as e:
-      compiled, report = None, fit.refused_report(e, target, budget_bytes)
-      if report is None:
-        raise
+  frames = jax.ShapeDtypeStruct((batch, trainer.frames) + trainer.frame_shape, jnp.float32,
+                                sharding=trainer.batch_sharding)
+  actions = jax.ShapeDtypeStruct((batch, trainer.frames - 1, net.action_dim), jnp.float32,
+                                 sharding=trainer.batch_sharding)
+  try:
+    compiled = trainer.compile(trainer.abstract_state, frames, actions)
+    report = fit.memory_report(compiled, target, budget_bytes)
+  except jax.errors.JaxRuntimeError as e:
+    compiled, report = None, fit.refused_report(e, target, budget_bytes)
+    if report is None:
+      raise
   height, width = trainer.frame_shape[:2]
   return compiled, {
       "what": "train", "target": target.spec, "platform": target.platform,

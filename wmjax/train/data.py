@@ -13,39 +13,27 @@ with its own action statistics and its actions are zero-padded to ``model.action
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
 from wmjax.codecs import Codec, make_codec
-from wmjax.data import oxe
-from wmjax.data.latents import LatentEpisodes, codec_description
-from wmjax.data.pipeline import Normalize, WindowSource, frames_to_float
+from wmjax.data.pipeline import Member, Normalize, frames_to_float, open_members
 from wmjax.data.rlds import stack_steps
-from wmjax.data.sources import member_configs, open_dataset
-from wmjax.data.stats import ActionStats
 from wmjax.eval.trajectories import Trajectories
 from wmjax.frames import to_model, to_uint8
-
-
-@dataclasses.dataclass
-class Member:
-  """One dataset of the run: its spec, action statistics, windows and mixture weight."""
-
-  spec: oxe.DatasetSpec
-  stats: ActionStats
-  train: WindowSource
-  eval: WindowSource | None  # None when the run does not evaluate (``train.eval_every=0``)
-  weight: float
 
 
 @dataclasses.dataclass
 class TrainData:
   members: list[Member]
   codec: Codec  # RGB frames <-> the model's space
-  latents: bool  # the windows hold pre-encoded latents (``latents_dir``), not RGB frames
+
+  @property
+  def latents(self) -> bool:
+    """The windows hold pre-encoded latents (``latents_dir``), not RGB frames."""
+    return self.members[0].latents
 
   def stats_dict(self) -> dict:
     """Saved with every checkpoint: the first member's statistics (those ``wmjax rollout`` and
@@ -56,66 +44,37 @@ class TrainData:
     return out
 
 
-def _open_latents(data: ml_collections.ConfigDict, config: ml_collections.ConfigDict,
-                  evaluation: bool):
-  directory = os.path.expanduser(data.latents_dir)
-  train_episodes = LatentEpisodes(directory, data.train_split)
-  meta = train_episodes.metadata
-  if meta["codec"] != codec_description(config.codec):
-    raise ValueError(f"{directory} was encoded with codec {meta['codec']}, but config.codec is "
-                     f"{codec_description(config.codec)}")
-  if tuple(meta["latent_shape"]) != tuple(config.frame_shape):
-    raise ValueError(f"{directory} holds latents of shape {tuple(meta['latent_shape'])}, but "
-                     f"frame_shape is {tuple(config.frame_shape)}")
-  eval_episodes = LatentEpisodes(directory, data.eval_split) if evaluation else None
-  return (train_episodes, eval_episodes, ActionStats.from_dict(meta["action_stats"]),
-          tuple(meta["resolution"]))
-
-
-def _open_frames(data: ml_collections.ConfigDict, config: ml_collections.ConfigDict,
-                 codec: Codec, evaluation: bool):
-  dataset = open_dataset(data)
-  train_episodes = dataset.split(data.train_split)
-  eval_episodes = dataset.split(data.eval_split) if evaluation else None
-  resolution = dataset.resolution(train_episodes.spec)
-  if tuple(config.frame_shape) != codec.latent_shape(resolution + (3,)):
-    raise ValueError(f"frame_shape {tuple(config.frame_shape)} does not match what the codec "
-                     f"({config.codec.kind}) makes of "
-                     f"{data.dataset}'s {resolution + (3,)} frames: "
-                     f"{codec.latent_shape(resolution + (3,))}")
-  return train_episodes, eval_episodes, dataset.train_stats(), resolution
+def _check_member(member: Member, config: ml_collections.ConfigDict, codec: Codec) -> None:
+  """The frames and actions of a dataset against the model's ``frame_shape`` and
+  ``action_dim``."""
+  frame_shape, spec = tuple(config.frame_shape), member.spec
+  if member.latents and member.frame_shape != frame_shape:
+    raise ValueError(f"{member.train.episodes.builder_dir} holds latents of shape "
+                     f"{member.frame_shape}, but frame_shape is {frame_shape}")
+  if not member.latents and frame_shape != codec.latent_shape(member.frame_shape):
+    raise ValueError(f"frame_shape {frame_shape} does not match what the codec "
+                     f"({config.codec.kind}) makes of {spec.name}'s {member.frame_shape} frames: "
+                     f"{codec.latent_shape(member.frame_shape)}")
+  # a mixture zero-pads smaller action spaces; a single dataset must match exactly
+  if spec.action_dim > config.model.action_dim or (
+      not config.data.mixture and spec.action_dim != config.model.action_dim):
+    raise ValueError(f"{spec.name} has {spec.action_dim}-dim actions but the model expects "
+                     f"model.action_dim={config.model.action_dim}")
 
 
 def build_data(config: ml_collections.ConfigDict, evaluation: bool = True) -> TrainData:
-  """Window sources and action statistics of every member, checked against the model before
-  anything compiles; without ``evaluation`` the evaluation splits are not opened (a run with
+  """Window sources and action statistics of every member
+  (:func:`wmjax.data.pipeline.open_members`), checked against the model before anything
+  compiles; without ``evaluation`` the evaluation splits are not opened (a run with
   ``train.eval_every=0`` needs none)."""
   codec = make_codec(config.codec)
-  frames = config.data.frames
-  if frames > config.model.num_frames:
-    raise ValueError(f"data.frames={frames} exceeds model.num_frames={config.model.num_frames}")
-  members, kinds = [], set()
-  for data in member_configs(config.data):
-    latents = bool(data.latents_dir)
-    kinds.add(latents)
-    train_episodes, eval_episodes, stats, resolution = (
-        _open_latents(data, config, evaluation) if latents
-        else _open_frames(data, config, codec, evaluation))
-    spec = train_episodes.spec
-    # a mixture zero-pads smaller action spaces; a single dataset must match exactly
-    mixture = bool(config.data.mixture)
-    if spec.action_dim > config.model.action_dim or (
-        not mixture and spec.action_dim != config.model.action_dim):
-      raise ValueError(f"{spec.name} has {spec.action_dim}-dim actions but the model expects "
-                       f"model.action_dim={config.model.action_dim}")
-    members.append(Member(spec, stats,
-                          WindowSource(train_episodes, frames, data.train_stride, resolution),
-                          WindowSource(eval_episodes, frames, data.eval_stride, resolution)
-                          if evaluation else None,
-                          float(data.get("weight", 1.0))))  # a mixture member's
-  if len(kinds) > 1:
-    raise ValueError("a mixture must be all pre-encoded latents or all frames")
-  return TrainData(members, codec, kinds.pop())
+  if config.data.frames > config.model.num_frames:
+    raise ValueError(f"data.frames={config.data.frames} exceeds "
+                     f"model.num_frames={config.model.num_frames}")
+  members = open_members(config.data, config.codec, evaluation)
+  for member in members:
+    _check_member(member, config, codec)
+  return TrainData(members, codec)
 
 
 def _held_out_windows(data: TrainData, config: ml_collections.ConfigDict

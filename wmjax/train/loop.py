@@ -58,8 +58,8 @@ from wmjax.train.context import TrainContext, set_up
 from wmjax.train.data import eval_trajectories
 from wmjax.train.resume import check_resume
 from wmjax.train.step import ShardedTrainer
-from wmjax.train.workdir import (METRICS_LOG, WorkdirLock, make_workdir, record_config_changes,
-                                 remove_empty_dirs, truncate_metrics_log)
+from wmjax.train.workdir import (METRICS_LOG, claimed, record_config_changes,
+                                 truncate_metrics_log)
 
 LIBRARY_LOG = "train.log"  # orbax's and asyncio's warnings and errors during training
 
@@ -255,28 +255,9 @@ def train(config: ml_collections.ConfigDict, workdir: str, *,
   a checkpoint (if the state is finite) and returns ``{'step', 'stopped', 'signal'}`` as metrics.
   """
   config = with_task(config)
-  workdir = os.path.abspath(os.path.expanduser(workdir))
-  created = make_workdir(workdir)
-  try:
-    return _train_locked(config, workdir, tuple(allow_config_change))
-  except BaseException:
-    if created is not None:  # an early failure (config, data) leaves no empty workdir behind
-      remove_empty_dirs(created)
-    raise
-
-
-def _train_locked(config: ml_collections.ConfigDict, workdir: str,
-                  allow: tuple[str, ...]) -> tuple[Any, dict]:
-  """:func:`_train` holding the workdir's lock, the libraries' logs sent to its log file."""
-  lock = WorkdirLock(workdir) if jax.process_index() == 0 else None
-  if lock is not None:
-    lock.acquire()
-  try:
+  with claimed(workdir, lock=jax.process_index() == 0) as workdir:
     with _library_logs_to(os.path.join(workdir, LIBRARY_LOG)):
-      return _train(config, workdir, allow)
-  finally:
-    if lock is not None:
-      lock.release()
+      return _train(config, workdir, tuple(allow_config_change))
 
 
 class _RunLog:

@@ -1,6 +1,6 @@
 """The train step: diffusion loss, AdamW update and EMA, jitted once with explicit shardings.
 
-``ShardedTrainer(world_model, config, mesh, frame_shape, frames)`` builds:
+``ShardedTrainer(world_model, config, mesh, frame_shape, frames, platform)`` builds:
   ``init(rng) -> TrainState``   parameters and optimiser state laid out by the logical-axis rules
   ``step(state, frames, actions) -> (TrainState, metrics)``  batch sharded over ('data', 'fsdp'),
                                   state donated.
@@ -21,6 +21,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from wmjax import parallel
 from wmjax.diffusion import LevelSampling, masked_loss_sum, training_noise
 from wmjax.model import WorldModel
+from wmjax.nn import attention
 from wmjax.parallel import abstract_with_shardings
 from wmjax.train.state import (TrainState, create_train_state, ema_update, learning_rate_schedule,
                                make_optimizer)
@@ -103,11 +104,13 @@ def check_batch_shapes(world_model: WorldModel, frames_shape, actions_shape, mes
 
 
 class ShardedTrainer:
-  """Jitted, sharded ``init`` and ``step`` for one world model, config and mesh."""
+  """Jitted, sharded ``init`` and ``step`` for one world model, config and mesh; its state is
+  traced and its step compiled with attention built for ``platform`` ('gpu', 'tpu', 'cpu'; None:
+  this process's own, see :func:`wmjax.nn.attention.platform_override`)."""
 
   def __init__(self, world_model: WorldModel, config: ml_collections.ConfigDict, mesh: Mesh,
-               frame_shape: tuple[int, int, int], frames: int):
-    self.world_model, self.mesh = world_model, mesh
+               frame_shape: tuple[int, int, int], frames: int, platform: str | None = None):
+    self.world_model, self.mesh, self.platform = world_model, mesh, platform
     self.frame_shape, self.frames = tuple(frame_shape), frames  # of the batches it trains on
     self.micro_batches = config.optim.grad_accum
     self.tx = make_optimizer(config.optim)
@@ -118,7 +121,8 @@ class ShardedTrainer:
       return create_train_state(world_model.init(param_rng, frame_shape, frames), self.tx,
                                 state_rng)
 
-    abstract = jax.eval_shape(init, jax.random.key(0))
+    with attention.platform_override(platform):
+      abstract = jax.eval_shape(init, jax.random.key(0))
     parallel.check_shardable(abstract, mesh)
     self.state_shardings = parallel.logical_shardings(abstract, mesh)
     self.abstract_state = abstract_with_shardings(nn.unbox(abstract), self.state_shardings)
@@ -153,7 +157,7 @@ class ShardedTrainer:
                        self.micro_batches)
     key = _batch_key(frames, actions)
     if key not in self._compiled:
-      with jax.set_mesh(self.mesh):
+      with jax.set_mesh(self.mesh), attention.platform_override(self.platform):
         self._compiled[key] = self._step.lower(state, frames, actions).compile()
     return self._compiled[key]
 

@@ -10,12 +10,14 @@ pid is no longer running on this host is stale.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import json
 import os
 import socket
 import time
+from typing import Iterator
 
 from wmjax.errors import RunError
 
@@ -136,6 +138,28 @@ class WorkdirLock:
       pass
     os.close(self._fd)  # drops the flock
     self._fd = None
+
+
+@contextlib.contextmanager
+def claimed(workdir: str, lock: bool = True) -> Iterator[str]:
+  """``workdir`` as an absolute path, made if missing and, with ``lock`` (the process that
+  trains), held under its :class:`WorkdirLock` while the block runs; what this made is removed
+  again if the block fails before writing anything there (a config or data error)."""
+  workdir = os.path.abspath(os.path.expanduser(workdir))
+  created = make_workdir(workdir)
+  holder = WorkdirLock(workdir) if lock else None
+  try:
+    if holder is not None:
+      holder.acquire()
+    try:
+      yield workdir
+    finally:
+      if holder is not None:
+        holder.release()
+  except BaseException:
+    if created is not None:
+      remove_empty_dirs(created)
+    raise
 
 
 def truncate_metrics_log(workdir: str, step: int) -> None:
