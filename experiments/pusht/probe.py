@@ -8,7 +8,9 @@ centroid error and the agent's centroid error (``wmjax.tasks.pusht.metrics``), f
 for copy-last-frame, over all windows and separately over the windows where the simulator's T
 does not move (``still``: its pose changes by < 0.5 px and 0.5 deg over the window) and those
 where it does (``moved``). A window's value is the mean of its frames at the given steps; means
-and standard errors are over episodes (each episode's windows averaged first).
+and standard errors are over episodes (each episode's windows averaged first). Every window's
+value is kept too (``per_window``, in the order of ``episode`` / ``start``), so that two models
+can be compared window by window (:func:`paired`).
 
     python experiments/pusht/probe.py --workdir W/model --data_dir D --step 500 --step 1000 \\
         --out W/probe.json
@@ -74,16 +76,32 @@ def probe(workdir: str, step: int, data_dir: str, *, batch_size: int = 32, limit
   groups = {"all": np.ones(len(still), bool), "still": still, "moved": ~still}
   result = {"workdir": os.path.abspath(workdir), "step": int(model.step),
             "reference_data": builder_dir, "windows": int(len(still)),
-            "still_windows": int(still.sum()), "context": CONTEXT, "generated": GENERATED}
+            "still_windows": int(still.sum()), "context": CONTEXT, "generated": GENERATED,
+            "episode": trajectories.episode.tolist(), "start": trajectories.start.tolist(),
+            "still": still.tolist(), "per_window": {}}
   for name in ("block_iou", "block_error_px", "agent_error_px"):
     for who, values in (("model", outcome.model[name]), ("copy", outcome.copy_last[name])):
       for frames, label in ((slice(0, 1), "step1"), (slice(GENERATED - 1, GENERATED), "step8"),
                             (slice(0, GENERATED), "mean8")):
         per_window = np.nanmean(values[:, frames], axis=1)
+        if who == "model":  # for comparisons paired by window between models
+          result["per_window"][f"{name}/{label}"] = per_window.tolist()
         for group, keep in groups.items():
           mean, se, n = _episode_mean_se(per_window, trajectories.episode, keep)
           result[f"{name}/{who}/{label}/{group}"] = {"mean": mean, "se": se, "episodes": n}
   return result
+
+
+def paired(a: dict, b: dict, key: str, group: str = "all") -> tuple[float, float, int]:
+  """``b`` minus ``a`` (two probes of the same windows) for ``per_window`` metric ``key``
+  (e.g. ``block_iou/step8``) over the windows of ``group`` (all, still, moved): mean and standard
+  error over episodes of each episode's mean difference, and the number of episodes."""
+  if (a["episode"], a["start"]) != (b["episode"], b["start"]):
+    raise ValueError("the two probes did not score the same windows")
+  still = np.asarray(a["still"])
+  keep = {"all": np.ones(len(still), bool), "still": still, "moved": ~still}[group]
+  difference = np.asarray(b["per_window"][key]) - np.asarray(a["per_window"][key])
+  return _episode_mean_se(difference, np.asarray(a["episode"]), keep)
 
 
 def main(argv=None) -> int:
