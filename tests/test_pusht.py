@@ -1,6 +1,7 @@
 """Push-T: frame geometry against the simulator, the scripted pusher, the dataset, the reward
 functions, and `wmjax eval-policy` / `wmjax plan` end to end on a tiny model."""
 
+import dataclasses
 import importlib.util
 import json
 import os
@@ -214,6 +215,64 @@ def test_prepare_command_writes_labelled_episodes(tmp_path):
       train_episodes=4, test_episodes=2, episode_length=6, noise_levels=(0, 0.5), batch=3),
       "train")
   assert synthetic.matching(stored, replayed, atol=1e-3).all()
+
+
+@pytest.mark.unit
+def test_episode_mix_defaults_unchanged_and_kinds_interleaved():
+  """The default mix is all scripted: the dataset's name, its start states and its noise levels
+  are those written before the mix existed; a mix interleaves the kinds in their fractions and
+  draws nothing from the start states' stream."""
+  default = pusht_data.PushTConfig(train_episodes=640)
+  assert default.mix == (1.0, 0.0, 0.0)
+  assert default.name == "s48_l40_e640-64_n0-0.1-0.2-0.5_c4_o90_a0.5_seed0"
+  old = pusht.random_initial_states(np.random.default_rng(0), 32, max_offset=90.0,
+                                    max_angle=0.5)  # the first batch, drawn as before the mix
+  np.testing.assert_array_equal(pusht_data.PushT.start_states(default, "train")[:32], old)
+  kinds, noise, _, _ = next(pusht_data._draws(default, 8, np.random.default_rng(0)))
+  assert (kinds == 0).all()
+  np.testing.assert_allclose(noise, [0.0, 0.1, 0.2, 0.5] * 2)
+  mixed = pusht_data.PushTConfig(train_episodes=640, mix=(0.5, 0.25, 0.25))
+  assert mixed.name == default.name + "_m0.5-0.25-0.25_r160"
+  np.testing.assert_array_equal(pusht_data.PushT.start_states(mixed, "train"),
+                                pusht_data.PushT.start_states(default, "train"))
+  kinds = pusht_data.episode_kinds(mixed.mix, 640)
+  assert np.bincount(kinds).tolist() == [320, 160, 160]
+  assert all(abs((kinds[:n] == 1).sum() - n / 4) <= 1 for n in range(1, 641))
+  kinds, noise, _, _ = next(pusht_data._draws(mixed, 8, np.random.default_rng(0)))
+  np.testing.assert_allclose(noise[kinds == 0], [0.0, 0.1, 0.2, 0.5])  # cycling over pushes
+  assert set(noise[kinds == 1]) == {pusht_data.RANDOM_AGENT}
+  assert set(noise[kinds == 2]) == {pusht_data.IDLE_AGENT}
+  with pytest.raises(ValueError, match="mix must be"):
+    pusht_data.PushTConfig(mix=(0.5, 0.5))
+  with pytest.raises(ValueError, match="mix must be"):
+    pusht_data.PushTConfig(mix=(0.5, 0.25, 0.5))
+
+
+@pytest.mark.unit
+def test_episode_mix_idle_agents_keep_everything_still_and_random_agents_touch_the_t():
+  """Idle episodes: neither the agent nor the T moves. Random agents move the agent, and touch
+  the T in some episodes (it moves); scripted episodes are those of the all-scripted data."""
+  mixed = pusht_data.PushTConfig(episode_length=25, batch=12, mix=(1 / 3, 1 / 3, 1 / 3))
+  episodes = list(pusht_data.collect(mixed, 12, np.random.default_rng(3)))
+  scripted = list(pusht_data.collect(dataclasses.replace(mixed, mix=(1.0, 0.0, 0.0)), 12,
+                                     np.random.default_rng(3)))
+  kinds = pusht_data.episode_kinds(mixed.mix, 12)
+  moved = {0: [], 1: [], 2: []}
+  for kind, episode in zip(kinds, episodes):
+    state = episode.observations["state"]
+    agent = np.abs(state[:, :2] - state[0, :2]).max()
+    block = np.abs(state[:, 2:] - state[0, 2:]).max()
+    moved[kind].append((agent, block))
+    if kind == 2:
+      assert agent < 1e-3 and block < 1e-3
+      assert (np.diff(episode.images.astype(int), axis=0) == 0).all()  # still frames
+    if kind == 1:
+      assert agent > 20.0
+  assert max(block for _, block in moved[1]) > 5.0  # some random agent pushed the T
+  # the first episode is scripted at noise 0 in both: the same pushes as in all-scripted data
+  assert kinds[0] == 0 and episodes[0].observations["policy_noise"][0] == 0.0
+  np.testing.assert_array_equal(episodes[0].observations["state"],
+                                scripted[0].observations["state"])
 
 
 @pytest.mark.unit

@@ -134,7 +134,11 @@ class SyntheticBuilder(NothingDownloaded, tfds.core.GeneratorBasedBuilder):
             "steps": tfds.features.Dataset(step),
             "episode_metadata": {"episode_id": np.int64},
         }),
-        metadata=tfds.core.MetadataDict(dataclasses.asdict(self.params)))
+        metadata=tfds.core.MetadataDict(self.metadata()))
+
+  def metadata(self) -> dict[str, Any]:
+    """The parameters written into ``dataset_info.json`` (all of them by default)."""
+    return dataclasses.asdict(self.params)
 
   def _split_generators(self, dl_manager):
     return {split: self._generate_examples(split) for split in SPLITS}

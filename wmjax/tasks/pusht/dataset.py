@@ -6,11 +6,19 @@ driven by the frame-based :class:`.simulator.PushPolicy` with Gaussian action no
 cycle through ``noise_levels`` (WPE collects with 0.1 / 0.2 / 0.5), so the data holds good
 pushes, poor ones and failures. The action is the agent's target ``(x, y)`` in ``[0, 512]``
 (step ``t``'s action leads to frame ``t + 1``; the last step repeats the agent's position).
+``mix`` sets the fractions of three kinds of episode: the scripted pusher (the default, every
+episode), a random agent (:class:`RandomAgent`: every chunk a new target within ``random_reach``
+px of the T's centre, so it touches the T from every side, or passes it by) and an idle agent
+(its target is where it starts: nothing moves). The kinds are interleaved by a deterministic
+weighted round robin (:func:`episode_kinds`), draw nothing from the random stream and leave the
+start states where they were; the noise levels cycle over the scripted episodes alone.
 Every step stores the simulator's state (``observation/state``: agent x, y, block x, y, angle as
 gym-pusht's ``state`` observation, the block's body origin; :func:`.simulator.reset_state` turns
 it into the simulator's ``reset_to_state``),
 ``observation/coverage``, ``observation/success`` (coverage > 0.95) and the episode's
-``observation/policy_noise``; the reward is gym-pusht's ``clip(coverage / 0.95, 0, 1)``.
+``observation/policy_noise`` (the scripted pusher's noise level; :data:`RANDOM_AGENT` = -1 for a
+random agent, :data:`IDLE_AGENT` = -2 for an idle one); the reward is gym-pusht's
+``clip(coverage / 0.95, 0, 1)``.
 """
 
 from __future__ import annotations
@@ -18,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import tensorflow_datasets as tfds
 
@@ -25,6 +34,9 @@ from wmjax.data import oxe, synthetic
 from wmjax.tasks.pusht import simulator
 
 INSTRUCTION = "push the T-shaped block onto the green T"
+KINDS = ("push", "random", "idle")  # the episode kinds of ``PushTConfig.mix``, in its order
+# ``observation/policy_noise`` of the episodes that are not scripted pushes
+RANDOM_AGENT, IDLE_AGENT = -1.0, -2.0
 
 oxe.register(oxe.DatasetSpec("pusht", "wmjax", extra_keys=(
     "observation/state", "observation/coverage", "observation/success",
@@ -45,6 +57,8 @@ class PushTConfig:
   max_angle: float = 0.5
   batch: int = 32
   seed: int = 0
+  mix: tuple[float, ...] = (1.0, 0.0, 0.0)  # fractions of scripted push / random / idle agents
+  random_reach: float = 160.0
 
   @classmethod
   def from_dict(cls, values) -> "PushTConfig":
@@ -53,6 +67,11 @@ class PushTConfig:
 
   def __post_init__(self):
     object.__setattr__(self, "noise_levels", tuple(float(n) for n in self.noise_levels))
+    object.__setattr__(self, "mix", tuple(float(f) for f in self.mix))
+    if (len(self.mix) != len(KINDS) or min(self.mix) < 0 or abs(sum(self.mix) - 1) > 1e-6
+        or self.random_reach <= 0):
+      raise ValueError(f"mix must be {len(KINDS)} fractions ({' / '.join(KINDS)}) >= 0 summing "
+                       f"to 1 and random_reach > 0, got {self.mix}, {self.random_reach}")
     if self.image_size < 8 or self.episode_length < 2 or not self.noise_levels:
       raise ValueError(f"need image_size >= 8, episode_length >= 2 and noise levels, got "
                        f"{self.image_size}, {self.episode_length}, {self.noise_levels}")
@@ -65,31 +84,98 @@ class PushTConfig:
     noise = "-".join(f"{n:g}" for n in self.noise_levels)
     return (f"s{self.image_size}_l{self.episode_length}_e{self.train_episodes}-"
             f"{self.test_episodes}_n{noise}_c{self.chunk}_o{self.max_offset:g}"
-            f"_a{self.max_angle:g}_seed{self.seed}")
+            f"_a{self.max_angle:g}_seed{self.seed}{self._mix_name()}")
+
+  def _mix_name(self) -> str:
+    """Empty for the default (all scripted), so that today's datasets keep their names."""
+    if self.mix == (1.0, 0.0, 0.0):
+      return ""
+    return "_m" + "-".join(f"{f:g}" for f in self.mix) + f"_r{self.random_reach:g}"
+
+
+def episode_kinds(mix, num_episodes: int) -> np.ndarray:
+  """The kind (index into :data:`KINDS`) of each of ``num_episodes`` episodes ``[N]`` int: a
+  weighted round robin, every prefix holding each kind's fraction of ``mix`` to within one
+  episode; no randomness (the start states' stream is left alone)."""
+  mix = np.asarray(mix, np.float64)
+  kinds, counts = np.empty(num_episodes, np.int64), np.zeros(len(mix))
+  for n in range(num_episodes):
+    kinds[n] = int(np.argmax((n + 1) * mix - counts))  # the kind furthest behind its share
+    counts[kinds[n]] += 1
+  return kinds
 
 
 def _draws(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
-  """What ``rng`` decides of ``num_episodes`` episodes, ``config.batch`` at a time: per batch the
-  noise levels ``[b]`` (cycling through ``config.noise_levels``), the start states ``[b, 5]`` and
-  the simulation's key seed."""
+  """What ``rng`` (and the mix) decide of ``num_episodes`` episodes, ``config.batch`` at a time:
+  per batch the episode kinds ``[b]`` (:func:`episode_kinds`), the noise levels ``[b]`` (cycling
+  through ``config.noise_levels`` over the scripted episodes; :data:`RANDOM_AGENT` /
+  :data:`IDLE_AGENT` for the others), the start states ``[b, 5]`` and the simulation's key seed.
+  The kinds draw nothing from ``rng``: the start states are the same for every mix."""
   levels = config.noise_levels
+  kinds = episode_kinds(config.mix, num_episodes)
+  scripted = np.cumsum(kinds == 0) - 1  # index of each scripted episode among the scripted
+  other = {1: RANDOM_AGENT, 2: IDLE_AGENT}
   for first in range(0, num_episodes, config.batch):
     count = min(config.batch, num_episodes - first)
-    noise = np.array([levels[(first + i) % len(levels)] for i in range(count)], np.float32)
+    batch_kinds = kinds[first:first + count]
+    noise = np.array([levels[scripted[first + i] % len(levels)] if k == 0 else other[k]
+                      for i, k in enumerate(batch_kinds)], np.float32)
     states = simulator.random_initial_states(rng, count, max_offset=config.max_offset,
                                              max_angle=config.max_angle)
-    yield noise, states, int(rng.integers(2**31))
+    yield batch_kinds, noise, states, int(rng.integers(2**31))
+
+
+@dataclasses.dataclass(frozen=True)
+class RandomAgent:
+  """A random agent for the data: every call (a chunk) a waypoint, the T's centre seen in the
+  newest frame plus an offset uniform in the disc of radius ``reach`` px, and as target the step
+  of at most ``max_step`` px from the agent towards it (the scripted pusher's push step), repeated
+  ``chunk`` times. The T is about 120 px across, so some waypoints lie in or beyond it (contact,
+  from whichever side the agent comes) and some beside it (a T that stays where it is)."""
+
+  chunk: int = 1
+  reach: float = 160.0
+  max_step: float = 60.0
+
+  def __call__(self, frames, key: jax.Array) -> jax.Array:
+    """``frames [B, c, H, W, 3]`` in [-1, 1] (the newest last) -> actions ``[B, chunk, 2]``."""
+    block, agent, _ = simulator.centroids(jnp.asarray(frames)[:, -1])
+    radius_key, angle_key = jax.random.split(key)
+    radius = self.reach * jnp.sqrt(jax.random.uniform(radius_key, (block.shape[0], 1)))
+    angle = jax.random.uniform(angle_key, (block.shape[0], 1), maxval=2 * jnp.pi)
+    step = block + radius * jnp.concatenate([jnp.cos(angle), jnp.sin(angle)], -1) - agent
+    length = jnp.linalg.norm(step, axis=-1, keepdims=True)
+    target = agent + step * jnp.minimum(1.0, self.max_step / jnp.maximum(length, 1e-6))
+    target = jnp.clip(target, 0.0, simulator.WORKSPACE)
+    return jnp.repeat(target[:, None], self.chunk, axis=1)
+
+
+def _policy(config: PushTConfig, kinds, noise, states):
+  """The batch's policy ``(frames, key) -> [b, chunk, 2]``: per episode the scripted pusher at its
+  noise level, the random agent or the idle agent (its start position as the target). All
+  scripted (the default): the pusher alone, with the key as before the mix existed."""
+  expert = simulator.PushPolicy(chunk=config.chunk)
+  if (kinds == 0).all():
+    return lambda frames, key: expert.act(frames, key, noise)
+  random_agent = RandomAgent(chunk=config.chunk, reach=config.random_reach)
+  scripted = np.where(kinds == 0, noise, 0.0)
+  idle = jnp.repeat(jnp.asarray(states[:, None, :2], jnp.float32), config.chunk, axis=1)
+  kind = jnp.asarray(kinds)[:, None, None]
+
+  def policy(frames, key):
+    push = expert.act(frames, key, scripted)
+    wander = random_agent(frames, jax.random.fold_in(key, 1))
+    return jnp.where(kind == 0, push, jnp.where(kind == 1, wander, idle))
+
+  return policy
 
 
 def collect(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
   """Simulate ``num_episodes`` episodes, ``config.batch`` at a time, cycling through the noise
-  levels; yields :class:`wmjax.data.synthetic.GeneratedEpisode`."""
-  expert = simulator.PushPolicy(chunk=config.chunk)
-  for noise, states, seed in _draws(config, num_episodes, rng):
-
-    def policy(frames, key, noise=noise):  # the expert with each episode's own noise level
-      return expert.act(frames, key, noise)
-
+  levels (and the episode kinds of ``config.mix``); yields
+  :class:`wmjax.data.synthetic.GeneratedEpisode`."""
+  for kinds, noise, states, seed in _draws(config, num_episodes, rng):
+    policy = _policy(config, kinds, noise, states)
     run = simulator.simulate_policy(policy, states, config.episode_length - 1,
                                     image_size=config.image_size, key=jax.random.key(seed))
     for i in range(len(states)):
@@ -105,6 +191,8 @@ def collect(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
 
 class PushT(synthetic.SyntheticBuilder):
   """Push-T episodes from gym-pusht driven by a scripted pusher at several noise levels."""
+  # (the docstring is the dataset's description in dataset_info.json: kept as it was written
+  # before the mix of random and idle agents existed)
 
   name = "pusht"
   VERSION = tfds.core.Version("1.0.0")
@@ -121,6 +209,14 @@ class PushT(synthetic.SyntheticBuilder):
   def episodes(self, count, rng):
     return collect(self.params, count, rng)
 
+  def metadata(self):
+    """The parameters; the mix's only where it is not the default (all scripted), so that the
+    datasets written before the mix existed are written to the byte as they were."""
+    values = super().metadata()
+    if values["mix"] == PushTConfig.mix:
+      values = {k: v for k, v in values.items() if k not in ("mix", "random_reach")}
+    return values
+
   @classmethod
   def check_can_write(cls):
     simulator.check_installed()
@@ -129,7 +225,7 @@ class PushT(synthetic.SyntheticBuilder):
   def start_states(cls, params, split):
     """``reset_to_state`` vectors ``[N, 5]`` every episode of ``split`` started from."""
     draws = _draws(params, cls.episode_count(params, split), synthetic.stream(params.seed, split))
-    return np.concatenate([states for _, states, _ in draws])
+    return np.concatenate([states for _, _, states, _ in draws])
 
 
 def prepare(data_dir: str, config: PushTConfig = PushTConfig()) -> str:

@@ -1,0 +1,142 @@
+"""Push-T: the cheapest signals of a world model, on held-out windows of one reference dataset.
+
+For each checkpoint step of a model, short open-loop rollouts from two true context frames under
+the true actions of 10-frame windows (stride 10) of the reference dataset's ``test`` split (by
+default today's data, all scripted pushes, whatever the model was trained on, so that models
+trained on different data are scored on the same windows): per generated frame the T's IoU and
+centroid error and the agent's centroid error (``wmjax.tasks.pusht.metrics``), for the model and
+for copy-last-frame, over all windows and separately over the windows where the simulator's T
+does not move (``still``: its pose changes by < 0.5 px and 0.5 deg over the window) and those
+where it does (``moved``). A window's value is the mean of its frames at the given steps; means
+and standard errors are over episodes (each episode's windows averaged first). Every window's
+value is kept too (``per_window``, in the order of ``episode`` / ``start``), so that two models
+can be compared window by window (:func:`paired`).
+
+    python experiments/pusht/probe.py --workdir W/model --data_dir D --step 500 --step 1000 \\
+        --out W/probe.json
+
+Prints one table row per step and writes every number to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+CONTEXT, GENERATED = 2, 8
+
+
+def _episode_mean_se(values: np.ndarray, episodes: np.ndarray, keep: np.ndarray):
+  """Mean and standard error over episodes of ``values [W]`` (windows ``keep``), each episode's
+  windows averaged first; (nan, nan, 0) where no window is kept."""
+  groups = [values[keep & (episodes == e)].mean() for e in np.unique(episodes[keep])]
+  if not groups:
+    return float("nan"), float("nan"), 0
+  groups = np.asarray(groups)
+  se = groups.std(ddof=1) / np.sqrt(len(groups)) if len(groups) > 1 else float("nan")
+  return float(groups.mean()), float(se), len(groups)
+
+
+def probe(workdir: str, step: int, data_dir: str, *, batch_size: int = 32, limit=None) -> dict:
+  import functools
+
+  import jax
+
+  from wmjax.data.sources import ArrayRecordEpisodes
+  from wmjax.eval.rollouts import run_rollouts
+  from wmjax.eval.trajectories import Trajectories, windows_of
+  from wmjax.model import load_model
+  from wmjax.registry import frame_metrics_of
+  from wmjax.tasks.pusht import dataset as pusht_data
+
+  model = load_model(workdir, step=step)
+  params = dict(model.config.data.pusht)
+  params.pop("mix", None)  # the reference data: the model's, all scripted
+  params.pop("random_reach", None)
+  reference = pusht_data.PushTConfig.from_dict(params)
+  builder_dir = pusht_data.prepare(data_dir, reference)
+  episodes = ArrayRecordEpisodes(builder_dir, "test", "pusht")
+  normalize = functools.partial(model.action_stats.normalize,
+                                mode=model.config.data.normalization,
+                                pad_to=model.config.model.action_dim)
+  size = tuple(model.config.frame_shape[:2])
+  windows = windows_of(episodes, CONTEXT + GENERATED, size, limit)
+  trajectories = Trajectories.stack(windows, normalize)
+  outcome = run_rollouts(model, trajectories, first=0, context=CONTEXT, horizon=1,
+                         rng=jax.random.key(0), batch_size=batch_size,
+                         task=frame_metrics_of("pusht"))
+  state = trajectories.extras["state"].astype(np.float64)  # [W, T, 5]
+  shift = np.abs(state[:, :, 2:4] - state[:, :1, 2:4]).max((1, 2))
+  turn = np.degrees(np.abs(state[:, :, 4] - state[:, :1, 4]).max(1))
+  still = (shift < 0.5) & (turn < 0.5)
+  groups = {"all": np.ones(len(still), bool), "still": still, "moved": ~still}
+  result = {"workdir": os.path.abspath(workdir), "step": int(model.step),
+            "reference_data": builder_dir, "windows": int(len(still)),
+            "still_windows": int(still.sum()), "context": CONTEXT, "generated": GENERATED,
+            "episode": trajectories.episode.tolist(), "start": trajectories.start.tolist(),
+            "still": still.tolist(), "per_window": {}}
+  for name in ("block_iou", "block_error_px", "agent_error_px"):
+    for who, values in (("model", outcome.model[name]), ("copy", outcome.copy_last[name])):
+      for frames, label in ((slice(0, 1), "step1"), (slice(GENERATED - 1, GENERATED), "step8"),
+                            (slice(0, GENERATED), "mean8")):
+        per_window = np.nanmean(values[:, frames], axis=1)
+        if who == "model":  # for comparisons paired by window between models
+          result["per_window"][f"{name}/{label}"] = per_window.tolist()
+        for group, keep in groups.items():
+          mean, se, n = _episode_mean_se(per_window, trajectories.episode, keep)
+          result[f"{name}/{who}/{label}/{group}"] = {"mean": mean, "se": se, "episodes": n}
+  return result
+
+
+def paired(a: dict, b: dict, key: str, group: str = "all") -> tuple[float, float, int]:
+  """``b`` minus ``a`` (two probes of the same windows) for ``per_window`` metric ``key``
+  (e.g. ``block_iou/step8``) over the windows of ``group`` (all, still, moved): mean and standard
+  error over episodes of each episode's mean difference, and the number of episodes."""
+  if (a["episode"], a["start"]) != (b["episode"], b["start"]):
+    raise ValueError("the two probes did not score the same windows")
+  still = np.asarray(a["still"])
+  keep = {"all": np.ones(len(still), bool), "still": still, "moved": ~still}[group]
+  difference = np.asarray(b["per_window"][key]) - np.asarray(a["per_window"][key])
+  return _episode_mean_se(difference, np.asarray(a["episode"]), keep)
+
+
+def main(argv=None) -> int:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                   formatter_class=argparse.RawDescriptionHelpFormatter,
+                                   epilog="\n".join(__doc__.splitlines()[1:]))
+  parser.add_argument("--workdir", required=True, help="the model's workdir (checkpoints/)")
+  parser.add_argument("--data_dir", required=True,
+                      help="TFDS data directory holding (or to hold) the reference dataset")
+  parser.add_argument("--step", type=int, action="append", required=True)
+  parser.add_argument("--out", required=True, help="JSON file for every number")
+  parser.add_argument("--limit", type=int, default=None, help="at most this many windows")
+  args = parser.parse_args(argv)
+  results = []
+  for step in args.step:
+    r = probe(args.workdir, step, args.data_dir, limit=args.limit)
+    results.append(r)
+
+    def cell(key):
+      v = r[key]
+      return f"{v['mean']:.3f} ± {v['se']:.3f}"
+
+    print(f"step {r['step']} ({r['windows']} windows, {r['still_windows']} with a still T): "
+          f"T IoU step 1 {cell('block_iou/model/step1/all')} (copy "
+          f"{cell('block_iou/copy/step1/all')}), step 8 {cell('block_iou/model/step8/all')} "
+          f"(copy {cell('block_iou/copy/step8/all')}); still T step 8 "
+          f"{cell('block_iou/model/step8/still')}, moved T step 8 "
+          f"{cell('block_iou/model/step8/moved')} (copy {cell('block_iou/copy/step8/moved')}); "
+          f"T error px step 8 {cell('block_error_px/model/step8/all')}; agent error px step 1 "
+          f"{cell('agent_error_px/model/step1/all')}", flush=True)
+  os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+  with open(args.out, "w") as f:
+    json.dump(results, f, indent=2)
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
