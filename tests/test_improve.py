@@ -166,8 +166,8 @@ def test_clone_and_improve_commands_write_a_policy_and_a_checked_report(trained_
   assert json.loads((tmp_path / "start" / "policy.json").read_text())["controls"] == [
       False, False, True, True]
   assert cli.main(["improve", "--workdir", str(trained_workdir), "--policy", start, "--out",
-                   better, "--rounds", "1", "--rollouts", "8", "--fit_steps", "2",
-                   "--evaluation_states", "4", "--keep", "0.25"]) == 0
+                   better, "--rounds", "1", "--rollouts", "4", "--fit_steps", "2",
+                   "--evaluation_states", "4", "--keep", "0.5"]) == 0  # one batch shape
   report = json.loads((tmp_path / "better" / "report.json").read_text())
   assert report["held_out"] is True and report["improved_in"] == "world model"
   first, last = report["rounds"]
