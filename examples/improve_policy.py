@@ -14,10 +14,9 @@ import numpy as np
 
 from wmjax import registry
 from wmjax.model import load_model
-from wmjax.policy import LearnedPolicy
 from wmjax.tasks import import_task, task_module
 from wmjax.train.improve import ImproveSettings, improve, world_model_rollout
-from wmjax.train.policy import demonstrations, fit_policy
+from wmjax.train.policy import clone_policy
 
 
 def main(argv=None):
@@ -32,12 +31,8 @@ def main(argv=None):
   model = load_model(args.workdir)
   import_task(task_module(model.config))                   # registers the gridworld's tasks
   task = registry.control_task("reach", model.config)
-  policy = LearnedPolicy.create(model.action_stats, model.config.data.normalization,
-                                context=model.config.rollout.context, chunk=1,
-                                frame_shape=model.image_shape, key=jax.random.key(0),
-                                controls=task.controls)    # the green square's velocity only
-  policy, _ = fit_policy(policy, demonstrations(model.config, policy, batch_size=64),
-                         steps=args.clone_steps)           # behaviour cloning
+  policy, _ = clone_policy(model, task.controls,          # the green square's velocity only
+                           steps=args.clone_steps)         # behaviour cloning
 
   held_out = task.start_states(64, "evaluate")
   imagined = world_model_rollout(model, task, task.start_states(args.rollouts, "plan",

@@ -17,14 +17,14 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import NamedSharding, PartitionSpec
+from jax.sharding import NamedSharding
 from numpy.typing import ArrayLike
 
 from wmjax.codecs import Codec, PixelCodec
 from wmjax.data.stats import ActionStats
 from wmjax.frames import to_model
 from wmjax.model import LoadedModel, WorldModel
-from wmjax.parallel import shard_rollout_batch
+from wmjax.parallel import replicated_like, shard_rollout_batch
 from wmjax.rollout import block_key, sample_block
 
 RewardFn = Callable[[np.ndarray, str | list[str] | None], np.ndarray]
@@ -132,10 +132,7 @@ class WorldModelEnv:
     divides, else beside the parameters (replicated on their mesh, or on their device)."""
     if isinstance(window.sharding, NamedSharding):
       return window.sharding
-    placed = getattr(jax.tree.leaves(self.params)[0], "sharding", None)  # None: host arrays
-    if isinstance(placed, NamedSharding):
-      return NamedSharding(placed.mesh, PartitionSpec())
-    return placed or window.sharding
+    return replicated_like(self.params) or window.sharding
 
   def step(self, action_chunk: ArrayLike) -> tuple[jax.Array, np.ndarray, np.ndarray, np.ndarray, dict]:
     """Apply ``action_chunk [B, k, A]`` (raw, ``1 <= k <= horizon``): returns (the ``k`` new

@@ -184,13 +184,17 @@ def abstract_with_shardings(abstract: Any, shardings: Any) -> Any:
                       shardings)
 
 
-def replicated_beside(tree: Any, reference: Any) -> Any:
-  """``tree``'s arrays put where ``reference``'s first array lives: replicated over its mesh when
-  that array is laid out by a ``NamedSharding``, else on its device (host arrays: unchanged). A
-  jitted function then takes both (e.g. a policy's parameters beside a world model's)."""
+def replicated_like(reference: Any) -> jax.sharding.Sharding | None:
+  """Where an array replicated beside ``reference``'s first array lives: over that array's mesh
+  when a ``NamedSharding`` lays it out, else on its device; None for host arrays."""
   placed = getattr(jax.tree.leaves(reference)[0], "sharding", None)
-  if placed is None:
-    return tree
   if isinstance(placed, NamedSharding):
-    placed = NamedSharding(placed.mesh, PartitionSpec())
-  return jax.device_put(tree, placed)
+    return NamedSharding(placed.mesh, PartitionSpec())
+  return placed
+
+
+def replicated_beside(tree: Any, reference: Any) -> Any:
+  """``tree``'s arrays put at :func:`replicated_like` ``(reference)`` (host arrays: unchanged),
+  so that a jitted function takes both (e.g. a policy's parameters beside a world model's)."""
+  placed = replicated_like(reference)
+  return tree if placed is None else jax.device_put(tree, placed)

@@ -136,12 +136,6 @@ def load_policy(directory: str) -> LearnedPolicy:
                        controls=tuple(description["controls"]), **arrays)
 
 
-def policy_info(directory: str) -> dict:
-  """The ``info`` a saved policy was written with."""
-  with open(os.path.join(os.path.expanduser(directory), POLICY_FILE)) as f:
-    return json.load(f)["info"]
-
-
 def split_policy(policy: Callable) -> tuple[Any, list]:
   """What a compiled rollout is keyed on and what it takes as arguments: a policy that is a
   pytree of arrays (a :class:`LearnedPolicy`) -> (its tree structure, its arrays), so new

@@ -36,7 +36,7 @@ from wmjax.model import load_model
 from wmjax.policy import LearnedPolicy
 from wmjax.tasks import import_task, task_module
 from wmjax.train.improve import ImproveSettings, improve_on_task, report_table
-from wmjax.train.policy import demonstrations, fit_policy
+from wmjax.train.policy import clone_policy
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -80,12 +80,7 @@ def main(argv=None) -> int:
   model = load_model(args.workdir)
   import_task(task_module(model.config))
   task = registry.control_task("reach", model.config)
-  start = LearnedPolicy.create(model.action_stats, model.config.data.normalization,
-                               context=model.config.rollout.context, chunk=1,
-                               frame_shape=model.image_shape, key=jax.random.key(args.seed),
-                               controls=task.controls)
-  start, losses = fit_policy(start, demonstrations(model.config, start, 64, args.seed),
-                             args.clone_steps)
+  start, losses = clone_policy(model, task.controls, steps=args.clone_steps, seed=args.seed)
   cloned = time.time()
   settings = ImproveSettings(rounds=args.rounds, rollouts=args.rollouts, keep=args.keep,
                              fit_steps=args.fit_steps, seed=args.seed)

@@ -25,17 +25,11 @@ def clone_policy(args, extra) -> int:
   normalised as the model reads it) and write it to --out (orbax parameters beside
   policy.json). The policy sets only the action dimensions --task controls."""
   del extra
-  import jax
-
-  from wmjax.policy import LearnedPolicy
-  from wmjax.train.policy import demonstrations, fit_policy
+  from wmjax.train.policy import clone_policy as clone
   model, task = _model_and_task(args)
-  policy = LearnedPolicy.create(
-      model.action_stats, model.config.data.normalization, context=model.config.rollout.context,
-      chunk=args.chunk, frame_shape=model.image_shape, key=jax.random.key(args.seed),
-      controls=task.controls)
-  policy, losses = fit_policy(policy, demonstrations(model.config, policy, args.batch_size,
-                                                     args.seed), args.steps, args.learning_rate)
+  policy, losses = clone(model, task.controls, steps=args.steps, chunk=args.chunk,
+                         batch_size=args.batch_size, learning_rate=args.learning_rate,
+                         seed=args.seed)
   policy.save(args.out, info={"trained_by": "behaviour cloning", "workdir": args.workdir,
                               "task": args.task, "steps": args.steps,
                               "final_loss": float(losses[-10:].mean())})

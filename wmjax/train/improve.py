@@ -111,8 +111,9 @@ def collect(policy: LearnedPolicy, rollout: Rollout, score: Score, settings: Imp
   record = {"explore_return": float(mean), "explore_return_stderr": float(stderr),
             "kept_episodes": int((weights > 0).sum()),
             "kept_return": float(np.average(np.nan_to_num(returns), weights=weights))}
-  kept = weights[episode] > 0
-  return (frames[kept], actions[kept], weights[episode][kept].astype(np.float32)), record
+  per_decision = weights[episode].astype(np.float32)
+  kept = per_decision > 0
+  return (frames[kept], actions[kept], per_decision[kept]), record
 
 
 def improve(policy: LearnedPolicy, rollout: Rollout, score: Score, settings: ImproveSettings,

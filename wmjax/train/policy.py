@@ -9,6 +9,8 @@ cloning keeps weights 0 / 1, reward-weighted regression ``exp(return / beta)``).
   policy = LearnedPolicy.create(model.action_stats, "mean_std", context=1, chunk=1,
                                 frame_shape=(16, 16, 3), key=jax.random.key(0))
   policy, losses = fit_policy(policy, demonstrations(model.config, policy, 64), steps=500)
+  # the same for a loaded world model, its rollout context and frames:
+  policy, losses = clone_policy(model, controls=None, steps=500)
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import optax
 from wmjax.data.pipeline import WindowSource, training_pipeline
 from wmjax.data.sources import open_dataset
 from wmjax.frames import to_model
+from wmjax.model import LoadedModel
 from wmjax.policy import LearnedPolicy
 
 
@@ -108,3 +111,17 @@ def fit_policy(policy: LearnedPolicy, batches: Iterable[dict], steps: int,
     leaves, opt_state, loss = update(leaves, opt_state, jax.tree.map(jnp.asarray, batch))
     losses.append(loss)
   return jax.tree.unflatten(structure, leaves), np.asarray(jax.device_get(losses))
+
+
+def clone_policy(model: LoadedModel, controls, *, steps: int, chunk: int = 1,
+                 batch_size: int = 64, learning_rate: float = 1e-3, seed: int = 0
+                 ) -> tuple[LearnedPolicy, np.ndarray]:
+  """A new policy for ``model`` (its frames, action statistics and rollout context) setting the
+  action dimensions ``controls`` (None: all), behaviour-cloned for ``steps`` steps from the
+  model's dataset (:func:`demonstrations`); the policy and the loss of every step."""
+  policy = LearnedPolicy.create(model.action_stats, model.config.data.normalization,
+                                context=model.config.rollout.context, chunk=chunk,
+                                frame_shape=model.image_shape, key=jax.random.key(seed),
+                                controls=controls)
+  return fit_policy(policy, demonstrations(model.config, policy, batch_size, seed), steps,
+                    learning_rate)

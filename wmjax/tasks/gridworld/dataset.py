@@ -73,6 +73,16 @@ class GridworldConfig:
             + ("_px" if self.snap_to_pixels else ""))
 
 
+def first_centres(config: GridworldConfig, rng: np.random.Generator, count: int) -> np.ndarray:
+  """``count`` start states ``[count, n, 2]``, drawn as an episode's first frame is: uniform
+  inside the frame, snapped to the pixel grid when the config snaps."""
+  half = config.square_size / 2
+  centres = rng.uniform(half, config.image_size - half, (count, config.num_squares, 2))
+  if config.snap_to_pixels:
+    centres = np.round(centres - half) + half
+  return centres.astype(np.float32)
+
+
 def simulate(config: GridworldConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
   """One episode: square centres ``[L, n, 2]`` and actions ``[L, 2n]`` (last action zero)."""
   n, length, half = config.num_squares, config.episode_length, config.square_size / 2
@@ -80,7 +90,7 @@ def simulate(config: GridworldConfig, rng: np.random.Generator) -> tuple[np.ndar
   # the centre of a square drawn from whole pixel ``k`` on is ``k + half``
   snap = (lambda c: np.round(c - half) + half) if config.snap_to_pixels else (lambda c: c)
   centres = np.empty((length, n, 2), np.float32)
-  centres[0] = snap(rng.uniform(low, high, (n, 2)))
+  centres[0] = first_centres(config, rng, 1)[0]
   velocities = rng.uniform(-config.max_speed, config.max_speed, (length, n, 2)).astype(np.float32)
   velocities[-1] = 0.0
   for t in range(1, length):

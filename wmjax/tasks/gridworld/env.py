@@ -17,7 +17,6 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from wmjax.frames import to_model
 from wmjax.policy import join_policy, split_policy
@@ -44,16 +43,6 @@ def render(config: GridworldConfig, centres: jax.Array) -> jax.Array:
   for i in range(config.num_squares):
     frame = jnp.where(masks[..., i, :, :, None], jnp.asarray(COLORS[i]), frame)
   return frame
-
-
-def first_centres(config: GridworldConfig, rng: np.random.Generator, count: int) -> np.ndarray:
-  """``count`` start states ``[count, n, 2]`` drawn as the dataset draws an episode's first
-  frame (uniform inside the frame, snapped to the pixel grid when the config snaps)."""
-  half = config.square_size / 2
-  centres = rng.uniform(half, config.image_size - half, (count, config.num_squares, 2))
-  if config.snap_to_pixels:
-    centres = np.round(centres - half) + half
-  return centres.astype(np.float32)
 
 
 def run_policy(config: GridworldConfig, policy: Any, centres, steps: int, key: jax.Array

@@ -13,6 +13,7 @@ import gymnasium
 import numpy as np
 
 from wmjax.tasks.gridworld import env
+from wmjax.tasks.gridworld.dataset import first_centres
 from wmjax.tasks.gridworld.reach import ReachTask
 
 
@@ -49,8 +50,8 @@ class GridworldEnv(gymnasium.Env):
 
   def _draw_start(self) -> np.ndarray:
     while True:
-      centres = env.first_centres(self.task.world, self.np_random, 1)[0]
-      if np.abs(centres[1] - centres[0]).max() >= self.task.min_separation:
+      centres = first_centres(self.task.world, self.np_random, 1)[0]
+      if self.task.apart(centres):
         return centres
 
   def step(self, action):

@@ -18,12 +18,13 @@ episode's first frame by chance: such draws are skipped.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
 from wmjax.data import synthetic
 from wmjax.tasks.gridworld import env
-from wmjax.tasks.gridworld.dataset import COLORS, Gridworld, GridworldConfig
+from wmjax.tasks.gridworld.dataset import COLORS, Gridworld, GridworldConfig, first_centres
 from wmjax.tasks.gridworld.metrics import color_centroids
 
 TARGET, MOVER = 0, 1  # red stays, green moves
@@ -55,17 +56,24 @@ class ReachTask:
     draw ``index``, none a training episode's first frame nor one of ``exclude [M, n, 2]``; the
     squares past the second are placed as the data places them."""
     rng = synthetic.stream(self.world.seed, purpose, index)
-    training = self._training_starts()
+    training = self._training_starts
     if exclude is not None:
       training = np.concatenate([training, np.asarray(exclude, training.dtype)])
     states = []
     while len(states) < count:
-      centres = env.first_centres(self.world, rng, 4 * count)
-      apart = np.abs(centres[:, MOVER] - centres[:, TARGET]).max(-1) >= self.min_separation
-      states.extend(centres[apart & ~synthetic.matching(centres, training)])
+      centres = first_centres(self.world, rng, 4 * count)
+      states.extend(centres[self.apart(centres) & ~synthetic.matching(centres, training)])
     return np.stack(states[:count])
 
+  def apart(self, centres) -> np.ndarray:
+    """Whether the two squares of each of ``centres [..., n, 2]`` are at least
+    ``min_separation`` pixels apart along one axis ``[...]``."""
+    centres = np.asarray(centres)
+    return np.abs(centres[..., MOVER, :] - centres[..., TARGET, :]).max(-1) >= self.min_separation
+
+  @functools.cached_property
   def _training_starts(self) -> np.ndarray:
+    """The training split's start states (replayed once per task)."""
     return Gridworld.start_states(self.world, "train")
 
   @classmethod
@@ -79,7 +87,7 @@ class ReachTask:
 
   def held_out(self, states) -> bool:
     """Whether none of ``states [N, n, 2]`` is a start state of the gridworld's training split."""
-    return not synthetic.matching(states, self._training_starts()).any()
+    return not synthetic.matching(states, self._training_starts).any()
 
   def frames(self, states) -> np.ndarray:
     """The first frames of episodes from ``states [B, n, 2]``: uint8 ``[B, 1, S, S, 3]``."""
