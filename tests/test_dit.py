@@ -247,6 +247,36 @@ def test_flops_of_irasim_xl_match_the_design_figure():
   assert 4.6e12 < flops < 4.9e12  # docs/design.md: about 4.75 TFLOP
 
 
+def test_action_place_tells_each_patch_where_the_action_points():
+  from wmjax.nn.layers import PlaceEmbedder
+  embed = PlaceEmbedder(8, widths=(0.1,))
+  # at the initial scale 0.5: image coordinates (column 0.25, row -0.75), the centre of patch
+  # (row 0, column 2) of a 4x4 grid, whose centres lie at -0.75, -0.25, 0.25, 0.75
+  place = jnp.asarray([[[0.5, -1.5]]])  # [B=1, m=1, 2]
+  params = embed.init(jax.random.key(0), place, 4, 4)
+  params["params"]["proj"]["kernel"] = jnp.zeros((3, 8)).at[2, 0].set(1.0).at[0, 1].set(1.0)
+  out = embed.apply(params, place, 4, 4)[0, 0]  # [P, D]
+  bump, column_offset = out[:, 0].reshape(4, 4), out[:, 1].reshape(4, 4)
+  assert int(jnp.argmax(bump)) == 2 and float(bump[0, 2]) == pytest.approx(1.0)
+  assert float(bump[3, 0]) < 1e-6  # far patches do not see it
+  np.testing.assert_allclose(column_offset[1], [-1.0, -0.5, 0.0, 0.5], atol=1e-6)
+
+
+def test_action_place_is_silent_where_actions_are_dropped_and_checked():
+  model, params, (x, t, a) = _model("per_frame", action_place=(0, 1))
+  drop = jnp.ones((x.shape[0],), bool)
+  apply = jit_apply(model)
+  np.testing.assert_allclose(apply(params, x, t, a, None, drop),
+                             apply(params, x, t, a.at[..., :2].add(3.0), None, drop), atol=1e-6)
+  assert float(jnp.abs(apply(params, x, t, a) - apply(params, x, t, a.at[..., 1].add(3.0))).max()
+               ) > 1e-3
+  for place in [(0,), (1, 1), (0, 7)]:
+    with pytest.raises(ValueError, match="action_place must be \\(\\) or two different"):
+      _model("per_frame", action_place=place)
+  with pytest.raises(ValueError, match="so cond must be 'frame' or 'per_frame', got 'video'"):
+    _model("video", action_place=(0, 1))
+
+
 @pytest.mark.parametrize("shape_change,message", [
     (dict(c=3), "must have 4 channels, got 3"),
     (dict(h=9), "divisible by the patch size 2, got 9x8"),
@@ -286,6 +316,7 @@ def _cached_output(model, params, x, t, a, c, mask=None, drop=None):
     ("per_frame", dict(temporal_first=True), 2),
     ("per_frame", dict(temporal_first=True, spatial_pos="rope", temporal_pos="rope"), 2),
     ("per_frame", dict(temporal_first=True, spatial_pos="sincos+rope"), 2),
+    ("per_frame", dict(temporal_first=True, action_place=(0, 1)), 2),
 ])
 @pytest.mark.slow
 def test_extend_after_the_cached_context_equals_the_whole_window(cond, fields, c):

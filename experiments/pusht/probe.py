@@ -41,7 +41,8 @@ def _episode_mean_se(values: np.ndarray, episodes: np.ndarray, keep: np.ndarray)
   return float(groups.mean()), float(se), len(groups)
 
 
-def probe(workdir: str, step: int, data_dir: str, *, batch_size: int = 32, limit=None) -> dict:
+def probe(workdir: str, step: int, data_dir: str, *, batch_size: int = 32, limit=None,
+          picture: str | None = None) -> dict:
   import functools
 
   import jax
@@ -68,7 +69,10 @@ def probe(workdir: str, step: int, data_dir: str, *, batch_size: int = 32, limit
   trajectories = Trajectories.stack(windows, normalize)
   outcome = run_rollouts(model, trajectories, first=0, context=CONTEXT, horizon=1,
                          rng=jax.random.key(0), batch_size=batch_size,
-                         task=frame_metrics_of("pusht"))
+                         task=frame_metrics_of("pusht"), keep_videos=8 if picture else 0)
+  if picture:  # the first 8 windows: the simulator's frames above the model's, each 10 frames
+    from wmjax.eval.video import frame_grid, write_png
+    write_png(picture, frame_grid([v for pair in outcome.videos for v in pair]))
   state = trajectories.extras["state"].astype(np.float64)  # [W, T, 5]
   shift = np.abs(state[:, :, 2:4] - state[:, :1, 2:4]).max((1, 2))
   turn = np.degrees(np.abs(state[:, :, 4] - state[:, :1, 4]).max(1))
@@ -114,10 +118,14 @@ def main(argv=None) -> int:
   parser.add_argument("--step", type=int, action="append", required=True)
   parser.add_argument("--out", required=True, help="JSON file for every number")
   parser.add_argument("--limit", type=int, default=None, help="at most this many windows")
+  parser.add_argument("--picture", default=None,
+                      help="PNG of the first 8 windows (simulator above model); a path with "
+                           "{step} in it when several steps are probed")
   args = parser.parse_args(argv)
   results = []
   for step in args.step:
-    r = probe(args.workdir, step, args.data_dir, limit=args.limit)
+    r = probe(args.workdir, step, args.data_dir, limit=args.limit,
+              picture=args.picture and args.picture.format(step=step))
     results.append(r)
 
     def cell(key):

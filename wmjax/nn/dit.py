@@ -124,6 +124,10 @@ class STDiT(nn.Module):
   action_embed_ratio: int = 4  # 0: linear action embedding (WPE); r: MLP with hidden r*D (IRASim)
   action_fourier_features: int = 0  # K > 0: sin / cos of 2^k pi a (k < K) beside each raw action
   action_encoding: str = "raw"  # a key of ACTION_ENCODINGS
+  # (x, y): the indexes of two action numbers that name a place in the image (a target position;
+  # x along the columns, y down the rows). Each frame's tokens then get layers.PlaceEmbedder's
+  # embedding of where its incoming action points, seen from each patch. () : none.
+  action_place: tuple[int, ...] = ()
   trajectory_in_temporal: bool = False
   action_dropout: float = 0.1
   causal_temporal: bool = False
@@ -158,6 +162,14 @@ class STDiT(nn.Module):
                        f"'frame' or 'per_frame', got {self.cond!r}")
     if self.action_fourier_features < 0:
       raise ValueError(f"action_fourier_features must be >= 0, got {self.action_fourier_features}")
+    place = tuple(self.action_place)
+    if place and (len(place) != 2 or len(set(place)) != 2
+                  or not all(0 <= i < self.action_dim for i in place)):
+      raise ValueError(f"action_place must be () or two different action indexes (x, y) below "
+                       f"action_dim={self.action_dim}, got {self.action_place!r}")
+    if place and self.cond not in ("frame", "per_frame"):
+      raise ValueError(f"action_place places each frame's incoming action, so cond must be "
+                       f"'frame' or 'per_frame', got {self.cond!r}")
     if self.remat not in REMAT_POLICIES:
       raise ValueError(f"remat must be one of {sorted(REMAT_POLICIES)}, got {self.remat!r}")
     if self.depth % 2:
@@ -177,6 +189,8 @@ class STDiT(nn.Module):
     if self.uses_trajectory:
       self.trajectory_embed = layers.ActionEmbedder(d, self.action_embed_ratio,
                                                     self.action_fourier_features, dtype=dtype)
+    if self.action_place:
+      self.place_embed = layers.PlaceEmbedder(d, dtype=dtype)
     self.null_action = self.param("null_action", logical(nn.initializers.normal(0.02), "embed"),
                                   (d,))
     self.blocks = LayerStack(self.depth // 2, self.num_heads, self.mlp_ratio, self.causal_temporal,
@@ -232,6 +246,19 @@ class STDiT(nn.Module):
     self.check_inputs(jax.ShapeDtypeStruct((b, n) + tuple(x.shape[2:]), x.dtype),
                       jax.ShapeDtypeStruct((b, n), t.dtype), actions, action_mask, drop_actions)
 
+  @staticmethod
+  def frame_actions(actions, action_mask, drop_actions, first: int, m: int):
+    """Each frame's incoming action, for frames ``first .. first+m-1`` of the window that
+    ``actions [B, n-1, A]`` describe: ``([B, m, A], keep [B, m])``, frame 0's action zeros;
+    ``keep`` is False for frame 0, masked actions and every frame of a dropped sample."""
+    b = actions.shape[0]
+    keep = jnp.ones(actions.shape[:2], bool) if action_mask is None else action_mask
+    if drop_actions is not None:
+      keep = keep & ~drop_actions[:, None]
+    keep = jnp.concatenate([jnp.zeros((b, 1), bool), keep], axis=1)[:, first:first + m]
+    incoming = jnp.pad(actions, ((0, 0), (1, 0), (0, 0)))[:, first:first + m]
+    return incoming, keep
+
   def conditioning(self, t, actions, action_mask=None, drop_actions=None, first: int = 0):
     """Per-frame conditioning vectors for the spatial blocks, temporal blocks and final layer.
 
@@ -251,11 +278,9 @@ class STDiT(nn.Module):
 
     frame_emb = None
     if self.cond in ("frame", "per_frame"):
-      emb = self.action_embed(actions.astype(dtype))  # [B, n-1, D]
-      keep = action_mask & ~drop[:, None]
-      emb = jnp.where(keep[..., None], emb, null)
-      frame_emb = jnp.concatenate([jnp.broadcast_to(null, (b, 1, emb.shape[-1])), emb], axis=1)
-      frame_emb = frame_emb[:, first:first + m]
+      incoming, keep = self.frame_actions(actions, action_mask, drop_actions, first, m)
+      emb = self.action_embed(incoming.astype(dtype))  # [B, m, D]
+      frame_emb = jnp.where(keep[..., None], emb, null)
 
     traj_emb = None
     if self.uses_trajectory:
@@ -347,6 +372,10 @@ class STDiT(nn.Module):
       if self.temporal_sincos_at == "input":
         pos, frame_pos = pos + frame_pos, None
     tokens = tokens + pos.astype(dtype)
+    if self.action_place:
+      incoming, keep = self.frame_actions(actions, action_mask, drop_actions, first, m)
+      place = self.place_embed(incoming[..., list(self.action_place)], gh, gw)  # [B, m, P, D]
+      tokens = tokens + jnp.where(keep[:, :, None, None], place, 0).astype(dtype)
     rows, cols = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")
     patch_positions = jnp.asarray(np.stack([rows.reshape(-1), cols.reshape(-1)], axis=1))
 

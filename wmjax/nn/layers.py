@@ -169,6 +169,40 @@ class ActionEmbedder(nn.Module):
                dtype=self.dtype, name="mlp")(actions)
 
 
+class PlaceEmbedder(nn.Module):
+  """Where an action points, seen from every patch: ``place [B, m, 2] -> [B, m, gh*gw, D]``.
+
+  For actions that name a place in the image (Push-T's target position): ``place`` holds the
+  normalised action numbers of its column (``x``) and row (``y``). A learned per-axis affine maps
+  them to image coordinates in ``[-1, 1]`` (initialised at scale 0.5 and shift 0, right for
+  standardised positions whose standard deviation is a quarter of the frame: the affine only
+  has to be refined); every patch (row-major, as :class:`PatchEmbed` orders them) then sees its
+  offset to that place and Gaussian bumps of the distance at ``widths`` (in the same units),
+  and one linear map makes that a token embedding. A global conditioning vector would have to
+  learn the image's geometry to tell a patch that the agent is going there; this says it.
+  """
+
+  hidden_size: int
+  widths: tuple[float, ...] = (0.05, 0.1, 0.2, 0.4)
+  dtype: Dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, place: jax.Array, grid_h: int, grid_w: int) -> jax.Array:
+    scale = self.param("scale", logical(nn.initializers.constant(0.5), None), (2,))
+    shift = self.param("shift", logical(_zeros, None), (2,))
+    target = place.astype(jnp.float32) * scale + shift  # [B, m, 2] as (column, row)
+    rows, cols = np.meshgrid((np.arange(grid_h) + 0.5) / grid_h * 2 - 1,
+                             (np.arange(grid_w) + 0.5) / grid_w * 2 - 1, indexing="ij")
+    centres = np.stack([cols.reshape(-1), rows.reshape(-1)], axis=1)  # [P, 2]
+    offset = centres - target[:, :, None, :]  # [B, m, P, 2]
+    distance2 = jnp.sum(offset ** 2, axis=-1, keepdims=True)
+    widths = np.asarray(self.widths, np.float32)
+    features = jnp.concatenate([offset, jnp.exp(-distance2 / (2 * widths ** 2))], axis=-1)
+    return nn.Dense(self.hidden_size, dtype=self.dtype,
+                    kernel_init=logical(_xavier, None, "embed"),
+                    bias_init=logical(_zeros, "embed"), name="proj")(features.astype(self.dtype))
+
+
 def fourier_encode(x: jax.Array, num_frequencies: int) -> jax.Array:
   """``[..., F] -> [..., F (1 + 2K)]``: ``x``, then ``sin`` and ``cos`` of ``2^k pi x`` for
   ``k < K`` (grouped by function, then frequency, then feature)."""
