@@ -54,6 +54,22 @@ def test_frame_coverage_and_centroids_follow_the_simulator():
 
 
 @pytest.mark.unit
+def test_stay_holds_the_newest_agent_a_frame_shows():
+  background = np.full((3, 2, 48, 48, 3), 255, np.uint8)
+  agent = np.asarray(pusht.PALETTE[pusht.PALETTE_NAMES.index("agent")], np.uint8)
+  frames = background.copy()
+  frames[0, 0, 10:13, 30:33] = agent  # episode 0: seen in the older frame only
+  frames[1, 0, 10:13, 30:33] = agent  # episode 1: seen in both, moved in the newer
+  frames[1, 1, 40:43, 5:8] = agent
+  chunk = np.asarray(pusht.StayPolicy(chunk=2)(to_model(frames), jax.random.key(0)))
+  assert chunk.shape == (3, 2, 2)
+  cell = pusht.WORKSPACE / 48
+  np.testing.assert_allclose(chunk[0, 0], [31.5 * cell, 11.5 * cell])  # (x, y) of the older
+  np.testing.assert_allclose(chunk[1, 1], [6.5 * cell, 41.5 * cell])  # the newer one
+  np.testing.assert_allclose(chunk[2, 0], [256.0, 256.0])  # none shows it: the centre
+
+
+@pytest.mark.unit
 def test_agent_and_block_metrics_read_from_frames():
   """A perfect prediction scores 0 px / IoU 1; an agent moved by 3 cells of 512/48 px is 3
   pixels off; an erased agent is not found and costs half the frame."""

@@ -326,14 +326,21 @@ def simulate_policy(policy: PolicyFn, states: np.ndarray, steps: int, *, image_s
 
 @dataclasses.dataclass(frozen=True)
 class StayPolicy:
-  """Keeps the agent where the frame shows it (a do-nothing baseline)."""
+  """Keeps the agent where the newest frame that shows it shows it (a do-nothing baseline).
+
+  A world model may lose the agent from a frame; the policy then holds the position of the
+  newest of its ``frames [B, c, H, W, 3]`` that shows one, and only where none does, the frame
+  centre (which :func:`centroids` gives for an unseen agent, and which is the goal's centre)."""
 
   chunk: int = 1
 
   def __call__(self, frames, key: jax.Array) -> jax.Array:
     del key
-    _, agent, _ = centroids(jnp.asarray(frames)[:, -1])
-    return jnp.repeat(agent[:, None], self.chunk, axis=1)
+    _, agent, _ = centroids(jnp.asarray(frames))  # [B, c, 2]
+    seen = object_masks(jnp.asarray(frames))[1].any((-2, -1))  # [B, c]
+    newest = frames.shape[1] - 1 - jnp.argmax(seen[:, ::-1], axis=1)  # all unseen: the newest
+    held = jnp.take_along_axis(agent, newest[:, None, None], axis=1)[:, 0]
+    return jnp.repeat(held[:, None], self.chunk, axis=1)
 
 
 def policy_from_spec(spec: str, chunk: int) -> PolicyFn:
