@@ -14,7 +14,8 @@
 #
 # What the backward pass keeps, one knob at a time (parts that may be named together in one call):
 #   benchmarks/gpu_suite.sh settings-xl-train  # XL/2's train step at batch 16 for each of
-#                                              # TRAIN_SETTINGS (~1 min each)
+#                                              # TRAIN_SETTINGS (~1 min each; a setting is
+#                                              # model fields, or section.field=value)
 #   benchmarks/gpu_suite.sh settings-wpe-train # the same for WPE-600M
 # A setting that does not fit the card is reported and the next one runs.
 #
@@ -75,19 +76,25 @@ rollout() {
   done
 }
 
-# Settings compared, one knob at a time: layers scanned or unrolled (a scan stacks each layer's
-# saved activations, copies an unrolled stack does not make), and what remat keeps (weight
-# matmuls, every matmul, everything). The fused Pallas kernels measured here on 2026-11-26 were
-# slower than XLA and were removed (benchmarks/RESULTS.md).
+# Settings compared, one knob at a time, unrolled layers (a scan stacks each layer's saved
+# activations, copies an unrolled stack does not make; 2026-11-26, H200: 612.5 ms unrolled against
+# 617.0 scanned with dots): what remat keeps, from weight matmuls (dots, today's default) through
+# attention outputs (dots_attention) and every matmul's input (dots_elementwise) to everything
+# (none: 131 GiB, an H200 only), and no remat over two micro-batches of 8. The fused Pallas kernels
+# measured here on 2026-11-26 were slower than XLA and were removed (benchmarks/RESULTS.md).
 TRAIN_SETTINGS=(${TRAIN_SETTINGS:+"$TRAIN_SETTINGS"})
 [[ ${#TRAIN_SETTINGS[@]} -gt 0 ]] || TRAIN_SETTINGS=(
-    "remat=dots" "remat=dots scan_layers=False" "remat=dots_all scan_layers=False"
+    "remat=dots scan_layers=False" "remat=dots_attention scan_layers=False"
+    "remat=dots_elementwise scan_layers=False" "remat=none scan_layers=False optim.grad_accum=2"
     "remat=none scan_layers=False")
 
-setting_flags() {  # "k=v k=v" -> --config.model.k=v ... in flags, -v-v in tag
-  flags=() tag=""
+setting_flags() {  # "k=v section.k=v" -> --config.model.k=v --config.section.k=v in flags,
+  flags=() tag=""  # -v-v in tag
   local kv
-  for kv in $1; do flags+=("--config.model.$kv"); tag+="-${kv#*=}"; done
+  for kv in $1; do
+    if [[ ${kv%%=*} == *.* ]]; then flags+=("--config.$kv"); else flags+=("--config.model.$kv"); fi
+    tag+="-${kv#*=}"
+  done
 }
 
 train_runs() {  # NAME CONFIG: the train step of each TRAIN_SETTINGS; a failing one (out of

@@ -148,7 +148,8 @@ def test_scanned_and_unrolled_layers_agree():
                              jit_apply(model)(params, x, t, a), rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("policy", ["full", "dots", "dots_all"])
+@pytest.mark.parametrize("policy", ["full", "dots", "dots_all", "dots_attention",
+                                    "dots_elementwise"])
 @pytest.mark.slow
 def test_remat_policies_change_nothing_but_memory(policy):
   model, params, (x, t, a) = _model("frame")

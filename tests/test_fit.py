@@ -86,7 +86,7 @@ def test_a_step_the_compiler_refuses_does_not_fit_and_the_ladder_climbs(monkeypa
   lines = []
   fitted, report = fit_context(build_context(config, fit.parse_target("cpu:2")),
                                budget_bytes=fit.GIB, batch=2, log=lines.append)
-  assert fitted.config.model.remat == "dots" and report["fits"]
+  assert fitted.config.model.remat == "dots_elementwise" and report["fits"]
   assert report["tried"][0] == {"remat": "none", "grad_accum": 1, "total_gib": 123.37}
   assert "more than 123 GiB per device, refused by the compiler" in lines[0]
   assert fit.refused_report(jax.errors.JaxRuntimeError("INTERNAL: boom"),
@@ -104,8 +104,11 @@ def test_targets_parse_and_refuse_clearly():
     fit.parse_target("cpu:64")
   config = tiny_config("gridworld.py", *SMALL)
   assert fit.fit_ladder(config, 16, 8) == [("full", 1), ("full", 2)]
-  assert fit.fit_ladder(fit.with_setting(config, "none", 1), 8, 2)[:3] == [
-      ("none", 1), ("dots", 1), ("full", 1)]
+  assert fit.fit_ladder(fit.with_setting(config, "none", 1), 8, 2)[:6] == [
+      ("none", 1), ("dots_elementwise", 1), ("dots_attention", 1), ("dots", 1), ("full", 1),
+      ("full", 2)]
+  assert fit.fit_ladder(fit.with_setting(config, "dots_attention", 1), 8, 2)[:2] == [
+      ("dots_attention", 1), ("dots", 1)]
 
 
 @pytest.mark.integration

@@ -76,7 +76,7 @@ def test_memory_estimate_moves_with_remat_dtype_batch_and_sharding():
   plain = report()
   assert plain["parameters"] > 0 and plain["mesh"] == [8, 1, 1] and plain["local_batch"] == 2
   activations = [report(f"model.remat='{p}'")["activations_gib"]
-                 for p in ("none", "dots_all", "dots", "full")]
+                 for p in ("none", "dots_elementwise", "dots_attention", "dots", "full")]
   assert activations == sorted(activations, reverse=True) and activations[-1] < activations[0] / 4
   assert report("model.dtype='bfloat16'")["activations_gib"] < plain["activations_gib"]
   assert report("batch_size=32")["activations_gib"] > 1.9 * plain["activations_gib"]

@@ -41,12 +41,26 @@ COND_MODES = ("frame", "video", "per_frame")
 # How an action reaches its embedding: "raw" numbers (ActionEmbedder), or "text", written as digit
 # tokens and read by a small Transformer (wmjax.nn.text_actions; frame / per_frame cond only).
 ACTION_ENCODINGS = ("raw", "text")
-# What a rematerialised layer keeps from its forward pass for the backward pass.
+# What a rematerialised layer keeps from its forward pass for the backward pass. Besides XLA's
+# own classes of values, the blocks name three (wmjax.nn.layers, jax.ad_checkpoint.checkpoint_name):
+# "attention" (the attention's output before its projection, [tokens, D]), "normed" (each
+# block's layer-normed and adaLN-modulated input to attention and to the MLP, [tokens, D] each)
+# and "mlp_activation" (the GELU output, [tokens, 4D]).
+_WEIGHT_MATMULS = jax.checkpoint_policies.dots_with_no_batch_dims_saveable
 REMAT_POLICIES = {
     "none": None,  # no remat: keep every activation (fastest, most memory)
-    "full": jax.checkpoint_policies.nothing_saveable,  # recompute the whole layer
-    "dots": jax.checkpoint_policies.dots_with_no_batch_dims_saveable,  # keep weight matmuls
+    # weight matmuls, attention outputs and every matmul's normalised / activated input: only
+    # the residual adds, gates and the attention's inner softmax are recomputed
+    "dots_elementwise": jax.checkpoint_policies.save_from_both_policies(
+        _WEIGHT_MATMULS, jax.checkpoint_policies.save_only_these_names(
+            "attention", "normed", "mlp_activation")),
+    # weight matmuls and attention outputs: the attention is not recomputed, the elementwise work
+    # (layer norms, modulation, GELU) is
+    "dots_attention": jax.checkpoint_policies.save_from_both_policies(
+        _WEIGHT_MATMULS, jax.checkpoint_policies.save_only_these_names("attention")),
+    "dots": _WEIGHT_MATMULS,  # keep weight matmuls: attention and elementwise work recomputed
     "dots_all": jax.checkpoint_policies.dots_saveable,  # keep every matmul, attention's too
+    "full": jax.checkpoint_policies.nothing_saveable,  # recompute the whole layer
 }
 # How a token knows where it is: "sincos" adds fixed sin-cos embeddings to the tokens; "rope"
 # rotates queries and keys (1-D over frames, axial 2-D over the patch grid), so attention scores

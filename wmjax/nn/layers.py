@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from einops import rearrange
+from jax.ad_checkpoint import checkpoint_name
 
 from wmjax.nn.attention import attend
 from wmjax.parallel import LOGICAL_RULES, MESH_AXES
@@ -255,7 +256,7 @@ class Mlp(nn.Module):
   def __call__(self, x: jax.Array) -> jax.Array:
     x = nn.Dense(self.hidden, dtype=self.dtype, kernel_init=logical(_xavier, self.in_axis, "mlp"),
                  bias_init=logical(_zeros, "mlp"), name="fc1")(x)
-    x = nn.gelu(x, approximate=True)
+    x = checkpoint_name(nn.gelu(x, approximate=True), "mlp_activation")
     return nn.Dense(self.features, dtype=self.dtype, kernel_init=logical(_xavier, "mlp", "embed"),
                     bias_init=logical(_zeros, "embed"), name="fc2")(x)
 
@@ -302,7 +303,8 @@ class Attention(nn.Module):
     keys, values = (k, v) if cache is None else (
         jnp.concatenate([cache[0].astype(k.dtype), k], axis=1),
         jnp.concatenate([cache[1].astype(v.dtype), v], axis=1))
-    out = attend(q, keys, values, causal=self.causal, backend=self.implementation)
+    out = checkpoint_name(attend(q, keys, values, causal=self.causal, backend=self.implementation),
+                          "attention")
     out = nn.DenseGeneral(d, axis=(-2, -1), dtype=self.dtype,
                           kernel_init=logical(_xavier, "heads", "kv", "embed"),
                           bias_init=logical(_zeros, "embed"), name="out")(out)
@@ -366,7 +368,7 @@ class STBlock(nn.Module):
         m[:, :, None, :] for m in Modulation(6, dtype=self.dtype, name="modulation")(cond))
     attention = Attention(self.num_heads, causal=self.causal, rope=self.rope,
                           implementation=self.attention_impl, dtype=self.dtype, name="attn")
-    h = modulate(layer_norm(x), shift_a, scale_a)
+    h = checkpoint_name(modulate(layer_norm(x), shift_a, scale_a), "normed")
     if self.axis == "spatial":
       if cache is not None:
         raise ValueError("spatial attention takes no cache: frames attend within themselves")
@@ -382,7 +384,7 @@ class STBlock(nn.Module):
     else:
       raise ValueError(f"axis must be 'spatial' or 'temporal', got {self.axis!r}")
     x = x + gate_a * h
-    h = modulate(layer_norm(x), shift_m, scale_m)
+    h = checkpoint_name(modulate(layer_norm(x), shift_m, scale_m), "normed")
     h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, name="mlp")(h)
     return constrain(x + gate_m * h), kv
 

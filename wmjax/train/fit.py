@@ -11,8 +11,8 @@ temporaries). Targets:
 ``v5p:2x2x1`` ...  a Cloud TPU topology (``v4``, ``v5e``, ``v5p``, ``v6e``); needs libtpu
 ``local``          the devices this process sees (what the trainer uses)
 
-:func:`fit_step` climbs the ladder remat none -> dots -> full, then gradient-accumulation
-micro-batches 2, 4, 8, ... (with full remat) from the config's own setting until the compiled
+:func:`fit_step` climbs the ladder remat none -> dots_elementwise -> dots_attention -> dots
+-> full, then gradient-accumulation micro-batches 2, 4, 8, ... (with full remat) from the config's own setting until the compiled
 step fits the device's memory, and says what it chose and what it tried. It only chooses: the
 step of each setting is built and compiled by the caller (:mod:`wmjax.train.context`, which
 builds the mesh, the model and the trainer of a run in one place).
@@ -32,7 +32,9 @@ import ml_collections
 from wmjax.errors import RunError
 
 GIB = 1024 ** 3
-REMAT_LADDER = ("none", "dots", "full")
+# least recomputation first (wmjax.nn.dit.REMAT_POLICIES): at one accumulation, the first that
+# fits recomputes least
+REMAT_LADDER = ("none", "dots_elementwise", "dots_attention", "dots", "full")
 
 
 def _gpu_target(description: str, cores: int, fpus: int, capability: tuple[int, int],

@@ -5,10 +5,13 @@ gradients (4), sharded over the ``fsdp`` x ``tensor`` mesh axes. Activations kep
 backward pass, per layer (one spatial + one temporal block) and per token of the local batch
 (``D`` = hidden size, ``b`` = bytes of the compute dtype, ``h`` = heads, ``S`` = attention length):
 
-  remat 'none'      ~ (16 D + 2 (4 D) ) b  + h S b for each block's softmax  (every activation)
-  remat 'dots_all'  ~ (3 D + D + 4 D + D) b + h S b                         (matmul outputs)
-  remat 'dots'      ~ (3 D + D + 4 D + D) b                                  (weight matmuls)
-  remat 'full'      ~ D b                                                    (layer inputs)
+  remat 'none'              ~ (16 D + 2 (4 D) ) b  + h S b for each block's softmax  (everything)
+  remat 'dots_elementwise'  ~ (3 D + D + 4 D + D + D + 2 D + 4 D) b   (+ attention outputs, the
+                                                        normed inputs and the GELU output)
+  remat 'dots_all'          ~ (3 D + D + 4 D + D) b + h S b           (matmul outputs)
+  remat 'dots_attention'    ~ (3 D + D + 4 D + D + D) b               (+ attention outputs)
+  remat 'dots'              ~ (3 D + D + 4 D + D) b                   (weight matmuls)
+  remat 'full'              ~ D b                                     (layer inputs)
 
 plus one layer's full activations for the recomputation. These are estimates: XLA fuses,
 reuses and adds workspace buffers. On IRASim-S (2 layers, batch 2 x 16 frames of 32x40x4, fp32,
@@ -30,7 +33,9 @@ def _per_token_bytes(hidden: int, dtype_bytes: int, remat: str, heads: int,
                      spatial_len: int, temporal_len: int) -> float:
   attention = heads * (spatial_len + temporal_len) * dtype_bytes  # both blocks' softmax
   full = 2 * (16 * hidden + 8 * hidden) * dtype_bytes + attention
-  kept = {"none": full, "dots_all": 2 * 9 * hidden * dtype_bytes + attention,
+  kept = {"none": full, "dots_elementwise": 2 * 16 * hidden * dtype_bytes,
+          "dots_all": 2 * 9 * hidden * dtype_bytes + attention,
+          "dots_attention": 2 * 10 * hidden * dtype_bytes,
           "dots": 2 * 9 * hidden * dtype_bytes, "full": hidden * dtype_bytes}
   return kept[remat]
 
