@@ -300,7 +300,7 @@ def test_without_the_simulator_preparing_writes_nothing(tmp_path, monkeypatch):
 
 
 @pytest.mark.unit
-def test_reward_functions():
+def test_reward_functions(tmp_path):
   states = np.stack([pusht.reset_state((60, 60), pusht.GOAL_POSE[:2], pusht.GOAL_POSE[2]),
                      pusht.reset_state((60, 60), (150, 380), 0.3)])
   frames, _ = _render(states)
@@ -311,6 +311,9 @@ def test_reward_functions():
   assert distance[1] == 0.0 and distance[0] < -0.01
   with pytest.raises(ValueError, match="goal image must be"):
     rewards.GoalImageDistance(frames[0, :10])(videos)
+  Image.fromarray(frames[0]).save(tmp_path / "goal.png")  # `--reward goal:PNG` of eval-policy
+  np.testing.assert_allclose(rewards.reward_from_spec(f"goal:{tmp_path / 'goal.png'}")(videos),
+                             distance)
   with pytest.raises(ValueError, match="reward must be"):
     rewards.reward_from_spec("iou")
 
@@ -361,56 +364,8 @@ def experiment(tmp_path_factory):
   return run, args
 
 
-@pytest.fixture(scope="module")
-def workdir(experiment):
-  """A tiny Push-T model trained for a few steps on a few simulated episodes."""
-  return os.path.join(experiment[1][1], "model")
-
-
-@pytest.mark.slow
-@pytest.mark.integration
-def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
-  goal = tmp_path / "goal.png"
-  Image.fromarray(np.full((16, 16, 3), 255, np.uint8)).save(goal)
-  out = tmp_path / "policy"
-  assert cli.main(["eval-policy", "--workdir", workdir, "--episodes", "2", "--steps", "5",
-                   "--policy", "push", "--policy", "push:0.5", "--policy", "stay",
-                   "--reward", "coverage", "--reward", f"goal:{goal}",
-                   "--videos", "1", "--video_format", "gif", "--out", str(out), "--scan"]) == 0
-  result = json.loads((out / "policy_eval.json").read_text())
-  assert list(result["policies"]) == ["push", "push@0.5", "stay"]
-  assert result["held_out"] is True
-  for values in result["policies"].values():
-    assert set(values) == {"simulator", "block", "coverage", f"goal:{goal}"}
-    assert 0.0 <= values["simulator"]["mean"] <= 1.0
-    assert values["coverage"]["world_model"]["rollouts"] == 2
-    assert len(values["coverage"]["world_model"]["per_episode"]) == 2
-    assert values["simulator"]["mean"] == pytest.approx(np.mean(values["simulator"]["per_episode"]))
-    for kind in ("world_model", "copy_first_frame"):
-      per_step = values["block"][kind]["per_step"]
-      assert {m: len(v) for m, v in per_step.items()} == {
-          "block_error_px": 5, "block_angle_error_deg": 5, "block_iou": 5}
-      assert values["block"][kind]["end"]["block_iou"] == per_step["block_iou"][-1]
-    assert values[f"goal:{goal}"]["simulator_reward"]["mean"] <= 0.0  # -MSE
-  intervals = result["rewards"]["coverage"]["agreement_ci95"]
-  assert intervals["samples"] == 2000 and intervals["level"] == 0.95
-  pearson = result["rewards"]["coverage"]["agreement"]["pearson"]
-  assert pearson is None or np.isnan(pearson) or -1.0 <= pearson <= 1.0
-  assert (out / "videos" / "push@0.5.gif").stat().st_size > 0
-  report = (out / "policy_eval.md").read_text()
-  assert "## Reward: coverage" in report and "| push |" in report
-  assert "held out from the training split: True" in report and "The T at the last step" in report
-
-  plan_out = tmp_path / "plan"
-  assert cli.main(["plan", "--workdir", workdir, "--episodes", "2", "--steps", "6",
-                   "--candidates", "1,3", "--lookahead", "--out", str(plan_out)]) == 0
-  plan = json.loads((plan_out / "plan.json").read_text())
-  assert set(plan["candidates"]) == {"1", "3"}
-  assert plan["candidates"]["3"]["world_model"]["replans"] == 2  # 6 steps, 4 executed per plan
-  assert set(plan["candidates"]["1"]) == {"world_model", "simulator"}
-  assert plan["held_out"] is True
-  assert "| 3 |" in capsys.readouterr().out
-
+def _check_summary(result: dict, plan: dict) -> None:
+  """:func:`summarize` of a policy evaluation and a plan run of K = 1 and 3 (2 re-plannings)."""
   summary = summarize(result, plan)
   assert summary["ranking_matches"] in (True, False)
   assert set(summary["planning"]) == set(summary["planning_lookahead"]) == {"1", "3"}
@@ -442,12 +397,43 @@ def test_eval_policy_and_plan_commands(workdir, tmp_path, capsys):
 
 @pytest.mark.slow
 @pytest.mark.integration
-def test_experiment_script_runs_its_stages_resumably(experiment):
+def test_experiment_script_runs_its_stages_resumably(experiment, capsys):
+  """run.py's stages, resumable; its policy and plan stages are the `wmjax eval-policy` and
+  `wmjax plan` commands end to end (--smoke: 4 episodes of 8 steps, planning 2 of 8, K 1 and 3),
+  so their outputs are checked here too."""
   run, args = experiment
   root = Path(args[1])
   assert run(args + ["--minutes", "0"]) == 3  # the deadline has passed: nothing starts
   assert not (root / "policy_eval").exists()
   assert run(args) == 0  # data, classifier and model done before: skipped
+  result = json.loads((root / "policy_eval" / "policy_eval.json").read_text())
+  classifier = f"classifier:{root / 'classifier'}"
+  assert list(result["policies"]) == ["push", "push@0.1", "push@0.2", "push@0.5", "stay"]
+  assert result["held_out"] is True
+  for values in result["policies"].values():
+    assert set(values) == {"simulator", "block", "coverage", classifier}
+    assert 0.0 <= values["simulator"]["mean"] <= 1.0
+    assert values["simulator"]["mean"] == pytest.approx(np.mean(values["simulator"]["per_episode"]))
+    assert values["coverage"]["world_model"]["rollouts"] == 4
+    assert len(values["coverage"]["world_model"]["per_episode"]) == 4
+    for kind in ("world_model", "copy_first_frame"):
+      per_step = values["block"][kind]["per_step"]
+      assert {m: len(v) for m, v in per_step.items()} == {
+          "block_error_px": 8, "block_angle_error_deg": 8, "block_iou": 8}
+      assert values["block"][kind]["end"]["block_iou"] == per_step["block_iou"][-1]
+  intervals = result["rewards"]["coverage"]["agreement_ci95"]
+  assert intervals["samples"] == 2000 and intervals["level"] == 0.95
+  pearson = result["rewards"]["coverage"]["agreement"]["pearson"]
+  assert pearson is None or np.isnan(pearson) or -1.0 <= pearson <= 1.0
+  report = (root / "policy_eval" / "policy_eval.md").read_text()
+  assert "## Reward: coverage" in report and "| push |" in report
+  assert "held out from the training split: True" in report and "The T at the last step" in report
+  plan = json.loads((root / "plan" / "plan.json").read_text())  # the K runs merged
+  assert set(plan["candidates"]) == {"1", "3"} and plan["held_out"] is True
+  assert plan["candidates"]["3"]["world_model"]["replans"] == 2  # 8 steps, 4 executed per plan
+  assert set(plan["candidates"]["1"]) == {"world_model", "simulator"}  # --lookahead
+  assert "| 3 |" in capsys.readouterr().out
+  _check_summary(result, plan)
   summary = json.loads((root / "summary.json").read_text())
   assert (summary["profile"], summary["train_steps"]) == ("cpu", 2)
   assert summary["minutes"] == pytest.approx(sum(summary["stage_minutes"].values()), abs=0.05)
@@ -458,7 +444,6 @@ def test_experiment_script_runs_its_stages_resumably(experiment):
   assert summary["held_out"] is True and 0.0 <= summary["block_iou_push_end"] <= 1.0
   for name in ("pearson_ci95", "spearman_ci95"):  # [lo, hi], or None if never defined
     assert summary[name] is None or -1.0 <= summary[name][0] <= summary[name][1] <= 1.0
-  plan = json.loads((root / "plan" / "plan.json").read_text())  # the K runs merged
   for k in ("1", "3"):
     assert plan["candidates"][k] == json.loads(
         (root / "plan" / f"K{k}" / "plan.json").read_text())["candidates"][k]
