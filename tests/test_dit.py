@@ -166,6 +166,23 @@ def test_remat_policies_change_nothing_but_memory(policy):
 
 
 @pytest.mark.slow
+def test_remat_policies_order_the_memory_the_backward_pass_keeps():
+  """What each policy keeps shows in the compiled gradient's temporaries: none > dots_elementwise
+  (the named normed inputs and GELU outputs) > dots_attention (the named attention outputs) >
+  dots > full."""
+  x, t, a = _inputs(4, 8, 16, 16, 4, 7)
+  temp = {}
+  for policy in ("none", "dots_elementwise", "dots_attention", "dots", "full"):
+    model = STDiT(in_channels=4, patch_size=2, depth=4, hidden_size=64, num_heads=4, num_frames=8,
+                  action_dim=7, cond="per_frame", remat=policy)
+    params = jax.eval_shape(model.init, jax.random.key(0), x, t, a)
+    grad = jax.grad(lambda p: jnp.mean(model.apply(p, x, t, a) ** 2))
+    temp[policy] = jax.jit(grad).lower(params).compile().memory_analysis().temp_size_in_bytes
+  assert list(temp.values()) == sorted(temp.values(), reverse=True), temp
+  assert len(set(temp.values())) == len(temp), temp
+
+
+@pytest.mark.slow
 def test_bf16_compute_keeps_float32_params():
   model, params, (x, t, a) = _model("frame")
   bf16 = model.clone(dtype="bfloat16")
