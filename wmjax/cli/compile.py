@@ -14,10 +14,10 @@ def run(args, extra) -> int:
   total), the device's memory and whether it fits, the mesh, XLA's and the analytic FLOPs and the
   compile time. When a train step does not fit, also the setting train.auto_fit would choose
   (remat none -> dots_elementwise -> dots_attention -> dots -> full, then gradient-accumulation
-  micro-batches). Targets: h100[:N], h200[:N], a100[:N] (needs JAX's CUDA plugin, no GPU), TPU topologies such as v5p:2x2x1,
-  v5p:4x4x4, v5e:4x4, v6e:2x2 (needs libtpu, no TPU) and cpu:N. GPU memory counts
-  XLA_PYTHON_CLIENT_MEM_FRACTION (default 0.75) of the card. Exits 1 when the config's own
-  setting does not fit."""
+  micro-batches). Targets: h100[:N], h200[:N], a100[:N] (needs JAX's CUDA plugin, no GPU), TPU
+  topologies such as v5p:2x2x1, v5p:4x4x4, v5e:4x4, v6e:2x2 (needs libtpu, no TPU) and cpu:N. GPU
+  memory counts XLA_PYTHON_CLIENT_MEM_FRACTION (default 0.75) of the card. Exits 1 when the
+  config's own setting does not fit."""
   import jax
 
   from wmjax.train import aot, fit

@@ -12,10 +12,11 @@ temporaries). Targets:
 ``local``          the devices this process sees (what the trainer uses)
 
 :func:`fit_step` climbs the ladder remat none -> dots_elementwise -> dots_attention -> dots
--> full, then gradient-accumulation micro-batches 2, 4, 8, ... (with full remat) from the config's own setting until the compiled
-step fits the device's memory, and says what it chose and what it tried. It only chooses: the
-step of each setting is built and compiled by the caller (:mod:`wmjax.train.context`, which
-builds the mesh, the model and the trainer of a run in one place).
+-> full, then gradient-accumulation micro-batches 2, 4, 8, ... (with full remat) from the
+config's own setting until the compiled step fits the device's memory, and says what it chose and
+what it tried. It only chooses: the step of each setting is built and compiled by the caller
+(:mod:`wmjax.train.context`, which builds the mesh, the model and the trainer of a run in one
+place).
 """
 
 from __future__ import annotations
