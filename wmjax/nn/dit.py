@@ -292,9 +292,11 @@ class STDiT(nn.Module):
 
     frame_emb = None
     if self.cond in ("frame", "per_frame"):
-      incoming, keep = self.frame_actions(actions, action_mask, drop_actions, first, m)
-      emb = self.action_embed(incoming.astype(dtype))  # [B, m, D]
-      frame_emb = jnp.where(keep[..., None], emb, null)
+      emb = self.action_embed(actions.astype(dtype))  # [B, n-1, D]
+      keep = action_mask & ~drop[:, None]
+      emb = jnp.where(keep[..., None], emb, null)
+      frame_emb = jnp.concatenate([jnp.broadcast_to(null, (b, 1, emb.shape[-1])), emb], axis=1)
+      frame_emb = frame_emb[:, first:first + m]
 
     traj_emb = None
     if self.uses_trajectory:
