@@ -15,7 +15,9 @@ can be compared window by window (:func:`paired`).
     python experiments/pusht/probe.py --workdir W/model --data_dir D --step 500 --step 1000 \\
         --out W/probe.json
 
-Prints one table row per step and writes every number to ``--out``.
+Prints one table row per step and writes every number to ``--out``. ``--by_noise_level``
+measures instead whether the model puts the agent back from one noisy frame, at each noise level
+(:func:`by_noise_level`).
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ import sys
 import numpy as np
 
 CONTEXT, GENERATED = 2, 8
+LEVELS = (50, 200, 400, 600, 800, 999)  # --by_noise_level
+MISSING_PX = 24.0  # the agent error of a frame without an agent (--by_noise_level)
 
 
 def _episode_mean_se(values: np.ndarray, episodes: np.ndarray, keep: np.ndarray):
@@ -41,32 +45,38 @@ def _episode_mean_se(values: np.ndarray, episodes: np.ndarray, keep: np.ndarray)
   return float(groups.mean()), float(se), len(groups)
 
 
-def probe(workdir: str, step: int, data_dir: str, *, batch_size: int = 32, limit=None,
-          picture: str | None = None) -> dict:
+def reference_windows(model, data_dir: str, frames: int, limit=None):
+  """(``test``-split builder directory, ``Trajectories`` of its ``frames``-frame windows) of the
+  reference dataset: the model's Push-T data without the random and idle agents (all scripted),
+  prepared in ``data_dir`` if absent."""
   import functools
 
-  import jax
-
   from wmjax.data.sources import ArrayRecordEpisodes
-  from wmjax.eval.rollouts import run_rollouts
   from wmjax.eval.trajectories import Trajectories, windows_of
-  from wmjax.model import load_model
-  from wmjax.registry import frame_metrics_of
   from wmjax.tasks.pusht import dataset as pusht_data
 
-  model = load_model(workdir, step=step)
   params = dict(model.config.data.pusht)
-  params.pop("mix", None)  # the reference data: the model's, all scripted
+  params.pop("mix", None)
   params.pop("random_reach", None)
-  reference = pusht_data.PushTConfig.from_dict(params)
-  builder_dir = pusht_data.prepare(data_dir, reference)
-  episodes = ArrayRecordEpisodes(builder_dir, "test", "pusht")
+  builder_dir = pusht_data.prepare(data_dir, pusht_data.PushTConfig.from_dict(params))
   normalize = functools.partial(model.action_stats.normalize,
                                 mode=model.config.data.normalization,
                                 pad_to=model.config.model.action_dim)
-  size = tuple(model.config.frame_shape[:2])
-  windows = windows_of(episodes, CONTEXT + GENERATED, size, limit)
-  trajectories = Trajectories.stack(windows, normalize)
+  windows = windows_of(ArrayRecordEpisodes(builder_dir, "test", "pusht"), frames,
+                       tuple(model.config.frame_shape[:2]), limit)
+  return builder_dir, Trajectories.stack(windows, normalize)
+
+
+def probe(workdir: str, step: int, data_dir: str, *, batch_size: int = 32, limit=None,
+          picture: str | None = None) -> dict:
+  import jax
+
+  from wmjax.eval.rollouts import run_rollouts
+  from wmjax.model import load_model
+  from wmjax.registry import frame_metrics_of
+
+  model = load_model(workdir, step=step)
+  builder_dir, trajectories = reference_windows(model, data_dir, CONTEXT + GENERATED, limit)
   outcome = run_rollouts(model, trajectories, first=0, context=CONTEXT, horizon=1,
                          rng=jax.random.key(0), batch_size=batch_size,
                          task=frame_metrics_of("pusht"), keep_videos=8 if picture else 0)
@@ -96,6 +106,42 @@ def probe(workdir: str, step: int, data_dir: str, *, batch_size: int = 32, limit
   return result
 
 
+def by_noise_level(workdir: str, step: int, data_dir: str, windows: int = 64) -> dict:
+  """Does the model put the agent back from one noisy frame? For the first ``windows`` 3-frame
+  windows of the reference ``test`` split: two clean frames, the third noised to each of
+  :data:`LEVELS`, one call of the network; its x0 prediction's agent error (a missing agent counts
+  :data:`MISSING_PX`) and how often it draws an agent at all. A model that draws the agent only
+  where the noisy input still carries it, not from high noise, has not learnt where the context
+  and the action put it."""
+  import jax
+  import jax.numpy as jnp
+
+  from wmjax.frames import to_model
+  from wmjax.model import load_model
+  from wmjax.tasks.pusht import simulator
+
+  model = load_model(workdir, step=step)
+  _, batch = reference_windows(model, data_dir, 3, windows)
+  frames, actions = jnp.asarray(to_model(batch.frames)), jnp.asarray(batch.actions)[:, :2]
+  truth = simulator.centroids(frames[:, 2])[1]
+  wm, size = model.world_model, model.config.frame_shape[0]
+  apply = jax.jit(wm.network.apply)
+  rows = {}
+  for level in LEVELS:
+    levels = jnp.broadcast_to(jnp.asarray([-1, -1, level]), (len(frames), 3))
+    noise = jax.random.normal(jax.random.key(level), frames[:, 2].shape)
+    noisy = frames.at[:, 2].set(wm.process.add_noise(frames[:, 2], levels[:, 2], noise))
+    out = apply(model.params, noisy, wm.process.model_time(levels), actions)[:, 2]
+    drawn = np.asarray(simulator.object_masks(out)[1].any((-2, -1)))
+    error = np.linalg.norm(np.asarray(simulator.centroids(out)[1] - truth), axis=-1)
+    error = np.where(drawn, error * size / simulator.WORKSPACE, MISSING_PX)
+    rows[str(level)] = {"agent_error_px": float(error.mean()),
+                        "agent_error_px_stderr": float(error.std(ddof=1) / np.sqrt(len(error))),
+                        "agent_drawn": float(drawn.mean())}
+  return {"workdir": os.path.abspath(workdir), "step": int(model.step),
+          "windows": int(len(frames)), "levels": rows}
+
+
 def paired(a: dict, b: dict, key: str, group: str = "all") -> tuple[float, float, int]:
   """``b`` minus ``a`` (two probes of the same windows) for ``per_window`` metric ``key``
   (e.g. ``block_iou/step8``) over the windows of ``group`` (all, still, moved): mean and standard
@@ -121,9 +167,18 @@ def main(argv=None) -> int:
   parser.add_argument("--picture", default=None,
                       help="PNG of the first 8 windows (simulator above model); a path with "
                            "{step} in it when several steps are probed")
+  parser.add_argument("--by_noise_level", action="store_true",
+                      help="instead: the agent from one noisy frame at each noise level "
+                           "(by_noise_level), 64 windows of 3 frames")
   args = parser.parse_args(argv)
   results = []
   for step in args.step:
+    if args.by_noise_level:
+      results.append(by_noise_level(args.workdir, step, args.data_dir))
+      for level, row in results[-1]["levels"].items():
+        print(f"step {step}, level {level}: agent error {row['agent_error_px']:.1f} ± "
+              f"{row['agent_error_px_stderr']:.1f} px, drawn in {row['agent_drawn']:.0%}")
+      continue
     r = probe(args.workdir, step, args.data_dir, limit=args.limit,
               picture=args.picture and args.picture.format(step=step))
     results.append(r)
