@@ -31,7 +31,6 @@ import numpy as np
 
 CONTEXT, GENERATED = 2, 8
 LEVELS = (50, 200, 400, 600, 800, 999)  # --by_noise_level
-MISSING_PX = 24.0  # the agent error of a frame without an agent (--by_noise_level)
 
 
 def _episode_mean_se(values: np.ndarray, episodes: np.ndarray, keep: np.ndarray):
@@ -109,8 +108,9 @@ def probe(workdir: str, step: int, data_dir: str, *, batch_size: int = 32, limit
 def by_noise_level(workdir: str, step: int, data_dir: str, windows: int = 64) -> dict:
   """Does the model put the agent back from one noisy frame? For the first ``windows`` 3-frame
   windows of the reference ``test`` split: two clean frames, the third noised to each of
-  :data:`LEVELS`, one call of the network; its x0 prediction's agent error (a missing agent counts
-  :data:`MISSING_PX`) and how often it draws an agent at all. A model that draws the agent only
+  :data:`LEVELS`, one call of the network; its x0 prediction's agent error and how often it draws
+  an agent at all (``agent_error_px`` and ``agent_found`` of :mod:`wmjax.tasks.pusht.metrics`:
+  a missing agent counts half the frame size). A model that draws the agent only
   where the noisy input still carries it, not from high noise, has not learnt where the context
   and the action put it."""
   import jax
@@ -118,26 +118,24 @@ def by_noise_level(workdir: str, step: int, data_dir: str, windows: int = 64) ->
 
   from wmjax.frames import to_model
   from wmjax.model import load_model
-  from wmjax.tasks.pusht import simulator
+  from wmjax.tasks.pusht.metrics import pusht_metrics
 
   model = load_model(workdir, step=step)
   _, batch = reference_windows(model, data_dir, 3, windows)
   frames, actions = jnp.asarray(to_model(batch.frames)), jnp.asarray(batch.actions)[:, :2]
-  truth = simulator.centroids(frames[:, 2])[1]
-  wm, size = model.world_model, model.config.frame_shape[0]
+  wm = model.world_model
   apply = jax.jit(wm.network.apply)
   rows = {}
   for level in LEVELS:
     levels = jnp.broadcast_to(jnp.asarray([-1, -1, level]), (len(frames), 3))
     noise = jax.random.normal(jax.random.key(level), frames[:, 2].shape)
     noisy = frames.at[:, 2].set(wm.process.add_noise(frames[:, 2], levels[:, 2], noise))
-    out = apply(model.params, noisy, wm.process.model_time(levels), actions)[:, 2]
-    drawn = np.asarray(simulator.object_masks(out)[1].any((-2, -1)))
-    error = np.linalg.norm(np.asarray(simulator.centroids(out)[1] - truth), axis=-1)
-    error = np.where(drawn, error * size / simulator.WORKSPACE, MISSING_PX)
+    out = apply(model.params, noisy, wm.process.model_time(levels), actions)[:, 2:]
+    metrics = pusht_metrics(np.asarray(out), batch.frames[:, 2:], None)
+    error = metrics["agent_error_px"][:, 0]
     rows[str(level)] = {"agent_error_px": float(error.mean()),
                         "agent_error_px_stderr": float(error.std(ddof=1) / np.sqrt(len(error))),
-                        "agent_drawn": float(drawn.mean())}
+                        "agent_drawn": float(metrics["agent_found"].mean())}
   return {"workdir": os.path.abspath(workdir), "step": int(model.step),
           "windows": int(len(frames)), "levels": rows}
 

@@ -261,17 +261,15 @@ class STDiT(nn.Module):
                       jax.ShapeDtypeStruct((b, n), t.dtype), actions, action_mask, drop_actions)
 
   @staticmethod
-  def frame_actions(actions, action_mask, drop_actions, first: int, m: int):
-    """Each frame's incoming action, for frames ``first .. first+m-1`` of the window that
-    ``actions [B, n-1, A]`` describe: ``([B, m, A], keep [B, m])``, frame 0's action zeros;
-    ``keep`` is False for frame 0, masked actions and every frame of a dropped sample."""
-    b = actions.shape[0]
+  def _frame_keeps(actions, action_mask, drop_actions, first: int, m: int) -> jax.Array:
+    """``[B, m]``: whether frames ``first .. first+m-1`` of the window that ``actions [B, n-1,
+    A]`` describe are conditioned on their incoming action (False for frame 0, masked actions
+    and every frame of a dropped sample)."""
     keep = jnp.ones(actions.shape[:2], bool) if action_mask is None else action_mask
     if drop_actions is not None:
       keep = keep & ~drop_actions[:, None]
-    keep = jnp.concatenate([jnp.zeros((b, 1), bool), keep], axis=1)[:, first:first + m]
-    incoming = jnp.pad(actions, ((0, 0), (1, 0), (0, 0)))[:, first:first + m]
-    return incoming, keep
+    keep = jnp.concatenate([jnp.zeros((actions.shape[0], 1), bool), keep], axis=1)
+    return keep[:, first:first + m]
 
   def conditioning(self, t, actions, action_mask=None, drop_actions=None, first: int = 0):
     """Per-frame conditioning vectors for the spatial blocks, temporal blocks and final layer.
@@ -292,6 +290,8 @@ class STDiT(nn.Module):
 
     frame_emb = None
     if self.cond in ("frame", "per_frame"):
+      # written this way, not with _frame_keeps on the frames: XLA rounds that program
+      # differently, and trained models (the README quickstart's) would change
       emb = self.action_embed(actions.astype(dtype))  # [B, n-1, D]
       keep = action_mask & ~drop[:, None]
       emb = jnp.where(keep[..., None], emb, null)
@@ -388,9 +388,10 @@ class STDiT(nn.Module):
       if self.temporal_sincos_at == "input":
         pos, frame_pos = pos + frame_pos, None
     tokens = tokens + pos.astype(dtype)
-    if self.action_place:
-      incoming, keep = self.frame_actions(actions, action_mask, drop_actions, first, m)
+    if self.action_place:  # frame j's incoming action a_{j-1}; frame 0's (zeros) is not kept
+      incoming = jnp.pad(actions, ((0, 0), (1, 0), (0, 0)))[:, first:first + m]
       place = self.place_embed(incoming[..., list(self.action_place)], gh, gw)  # [B, m, P, D]
+      keep = self._frame_keeps(actions, action_mask, drop_actions, first, m)
       tokens = tokens + jnp.where(keep[:, :, None, None], place, 0).astype(dtype)
     rows, cols = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")
     patch_positions = jnp.asarray(np.stack([rows.reshape(-1), cols.reshape(-1)], axis=1))

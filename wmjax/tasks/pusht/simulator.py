@@ -96,23 +96,25 @@ def object_masks(frames) -> tuple[jax.Array, jax.Array]:
   return classes == BLOCK, classes == AGENT
 
 
+def world_centroid(mask) -> tuple[jax.Array, jax.Array]:
+  """World ``(x, y)`` centroid ``[..., 2]`` of an object's pixels ``mask [..., H, W]`` and whether
+  it was seen ``[...]``; an unseen object's centroid is the frame centre."""
+  h, w = mask.shape[-2:]
+  ys = (jnp.arange(h) + 0.5) * WORKSPACE / h
+  xs = (jnp.arange(w) + 0.5) * WORKSPACE / w
+  count = mask.sum((-2, -1))
+  cx = (mask * xs).sum((-2, -1)) / jnp.maximum(count, 1)
+  cy = (mask * ys[:, None]).sum((-2, -1)) / jnp.maximum(count, 1)
+  centre = jnp.stack([cx, cy], -1)
+  return jnp.where((count > 0)[..., None], centre, WORKSPACE / 2), count > 0
+
+
 def centroids(frames) -> tuple[jax.Array, jax.Array, jax.Array]:
   """World ``(x, y)`` centroids of the block and the agent (``[..., 2]`` each) and whether both
   were seen (``[...]``); an unseen object's centroid is the frame centre."""
   block, agent = object_masks(frames)
-  h, w = block.shape[-2:]
-  ys = (jnp.arange(h) + 0.5) * WORKSPACE / h
-  xs = (jnp.arange(w) + 0.5) * WORKSPACE / w
-
-  def centroid(mask):
-    count = mask.sum((-2, -1))
-    cx = (mask * xs).sum((-2, -1)) / jnp.maximum(count, 1)
-    cy = (mask * ys[:, None]).sum((-2, -1)) / jnp.maximum(count, 1)
-    centre = jnp.stack([cx, cy], -1)
-    return jnp.where((count > 0)[..., None], centre, WORKSPACE / 2), count > 0
-
-  block_xy, block_seen = centroid(block)
-  agent_xy, agent_seen = centroid(agent)
+  block_xy, block_seen = world_centroid(block)
+  agent_xy, agent_seen = world_centroid(agent)
   return block_xy, agent_xy, block_seen & agent_seen
 
 
@@ -336,8 +338,7 @@ class StayPolicy:
 
   def __call__(self, frames, key: jax.Array) -> jax.Array:
     del key
-    _, agent, _ = centroids(jnp.asarray(frames))  # [B, c, 2]
-    seen = object_masks(jnp.asarray(frames))[1].any((-2, -1))  # [B, c]
+    agent, seen = world_centroid(object_masks(jnp.asarray(frames))[1])  # [B, c, 2], [B, c]
     newest = frames.shape[1] - 1 - jnp.argmax(seen[:, ::-1], axis=1)  # all unseen: the newest
     held = jnp.take_along_axis(agent, newest[:, None, None], axis=1)[:, 0]
     return jnp.repeat(held[:, None], self.chunk, axis=1)
