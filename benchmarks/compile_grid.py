@@ -21,6 +21,7 @@ import jax
 
 from wmjax.config import load_config, parse_args_with_overrides
 from wmjax.train import aot, fit
+from wmjax.train.context import with_setting
 
 
 def main() -> None:
@@ -55,7 +56,7 @@ def main() -> None:
 
   mesh_devices = len(target.devices) // (config.mesh[2] if config.mesh[2] > 0 else 1)
   for remat in args.remat or list(fit.REMAT_LADDER):
-    setting = fit.with_setting(config, remat, 1)
+    setting = with_setting(config, remat, 1)
     if not args.largest:
       for batch in args.batch or [config.batch_size]:
         record(aot.compile_train(setting, target, batch))

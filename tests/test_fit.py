@@ -13,7 +13,7 @@ import pytest
 from conftest import ROOT, tiny_config
 from wmjax.config import load_config
 from wmjax.train import aot, fit
-from wmjax.train.context import build_context, compile_step, fit_context, fit_to_memory
+from wmjax.train.context import build_context, compile_step, fit_context, fit_to_memory, with_setting
 from wmjax.train.step import ShardedTrainer
 
 # A small gridworld model: 8x8 RGB frames, 4-frame windows, global batch 16 on 8 devices.
@@ -104,10 +104,10 @@ def test_targets_parse_and_refuse_clearly():
     fit.parse_target("cpu:64")
   config = tiny_config("gridworld.py", *SMALL)
   assert fit.fit_ladder(config, 16, 8) == [("full", 1), ("full", 2)]
-  assert fit.fit_ladder(fit.with_setting(config, "none", 1), 8, 2)[:6] == [
+  assert fit.fit_ladder(with_setting(config, "none", 1), 8, 2)[:6] == [
       ("none", 1), ("dots_elementwise", 1), ("dots_attention", 1), ("dots", 1), ("full", 1),
       ("full", 2)]
-  assert fit.fit_ladder(fit.with_setting(config, "dots_attention", 1), 8, 2)[:2] == [
+  assert fit.fit_ladder(with_setting(config, "dots_attention", 1), 8, 2)[:2] == [
       ("dots_attention", 1), ("dots", 1)]
 
 

@@ -12,6 +12,7 @@ gradient accumulation, applied to the same mesh and model (:meth:`TrainContext.w
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import time
 
@@ -43,7 +44,7 @@ class TrainContext:
   def with_setting(self, remat: str, grad_accum: int) -> TrainContext:
     """The same mesh, model and data with ``model.remat`` and ``optim.grad_accum`` changed, and a
     trainer for them."""
-    config = fit.with_setting(self.config, remat, grad_accum)
+    config = with_setting(self.config, remat, grad_accum)
     world_model = dataclasses.replace(self.world_model,
                                       network=self.world_model.network.clone(remat=remat))
     return dataclasses.replace(self, config=config, world_model=world_model,
@@ -112,10 +113,12 @@ def compile_step(context: TrainContext, batch: int | None = None,
   }
 
 
-def _measure(context: TrainContext, batch: int | None, budget_bytes: int | None) -> fit.Measure:
-  """The fit's measure of ``context``: a setting -> (its context, its compiled step's report)."""
-  def measure(remat: str, grad_accum: int) -> tuple[TrainContext, dict]:
-    candidate = context.with_setting(remat, grad_accum)
+def _measure(context: TrainContext, batch: int | None) -> fit.Measure:
+  """The fit's measure of ``context``: a setting and a budget -> (its context, its compiled
+  step's report)."""
+  def measure(remat: str, grad_accum: int, budget_bytes: int | None) -> tuple[TrainContext, dict]:
+    own = (context.config.model.remat, context.config.optim.grad_accum) == (remat, grad_accum)
+    candidate = context if own else context.with_setting(remat, grad_accum)
     return candidate, compile_step(candidate, batch, budget_bytes)[1]
   return measure
 
@@ -125,19 +128,26 @@ def fit_context(context: TrainContext, budget_bytes: int | None = None, batch: i
                 ) -> tuple[TrainContext, dict]:
   """:func:`wmjax.train.fit.fit_step` over the settings of ``context``: the context of the first
   setting whose compiled step fits ``budget_bytes``, and its report."""
-  return fit.fit_step(context.config, context.target, _measure(context, batch, budget_bytes),
+  return fit.fit_step(context.config, context.target, _measure(context, batch),
                       context.data_parallel, budget_bytes, batch, first, log)
+
+
+def with_setting(config: ml_collections.ConfigDict, remat: str, grad_accum: int
+                 ) -> ml_collections.ConfigDict:
+  """A copy of ``config`` with ``model.remat`` and ``optim.grad_accum`` set."""
+  updated = copy.deepcopy(config)
+  with updated.unlocked():
+    updated.model.remat = remat
+    updated.optim.grad_accum = grad_accum
+  return updated
 
 
 def fit_to_memory(context: TrainContext, log=print) -> tuple[TrainContext, dict]:
   """Before the first step: the step compiled on the context's devices against the training
-  budget (:func:`wmjax.train.fit.training_budget`) and, where it does not fit and
-  ``train.auto_fit`` allows, the first setting that does
+  budget and, where it does not fit and ``train.auto_fit`` allows, the first setting that does
   (:func:`wmjax.train.fit.fit_for_training`) -> (context as trained, its report)."""
-  budget = fit.training_budget(context.config, context.target)
-  first = context, compile_step(context, budget_bytes=budget)[1]
-  return fit.fit_for_training(context.config, context.target, _measure(context, None, budget),
-                              context.data_parallel, first, log)
+  return fit.fit_for_training(context.config, context.target, _measure(context, None),
+                              context.data_parallel, log)
 
 
 def set_up(config: ml_collections.ConfigDict, log=print) -> TrainContext:

@@ -21,11 +21,10 @@ place).
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import os
 import re
-from typing import Any, Callable
+from typing import Any, Callable, Union
 
 import jax
 import ml_collections
@@ -208,16 +207,6 @@ def fit_ladder(config: ml_collections.ConfigDict, batch: int, data_parallel: int
   return ladder
 
 
-def with_setting(config: ml_collections.ConfigDict, remat: str, grad_accum: int
-                 ) -> ml_collections.ConfigDict:
-  """A copy of ``config`` with ``model.remat`` and ``optim.grad_accum`` set."""
-  updated = copy.deepcopy(config)
-  with updated.unlocked():
-    updated.model.remat = remat
-    updated.optim.grad_accum = grad_accum
-  return updated
-
-
 class DoesNotFitError(RunError):
   """No setting of the fit ladder compiles to a step that fits the device's memory."""
 
@@ -248,8 +237,9 @@ def _gib(value: float | None) -> str:
   return "an unknown number of" if value is None else f"{value:.3g}"
 
 
-# measure(remat, grad_accum) -> (what it built, its report): the step of that setting compiled
-Measure = Callable[[str, int], tuple[Any, dict]]
+# measure(remat, grad_accum, budget_bytes) -> (what it built, its report): the step of that
+# setting compiled, and whether it fits budget_bytes
+Measure = Callable[[str, int, Union[int, None]], tuple[Any, dict]]
 
 
 def fit_step(config: ml_collections.ConfigDict, target: Target, measure: Measure,
@@ -265,7 +255,7 @@ def fit_step(config: ml_collections.ConfigDict, target: Target, measure: Measure
   tried = []
   for i, (remat, accum) in enumerate(fit_ladder(config, batch or config.batch_size,
                                                 data_parallel)):
-    built, report = first if i == 0 and first is not None else measure(remat, accum)
+    built, report = first if i == 0 and first is not None else measure(remat, accum, budget_bytes)
     tried.append({"remat": remat, "grad_accum": accum, "total_gib": report["total_gib"]})
     log(f"fit: {describe(report)}")
     if report["fits"]:
@@ -287,12 +277,13 @@ def training_budget(config: ml_collections.ConfigDict, target: Target) -> int | 
 
 
 def fit_for_training(config: ml_collections.ConfigDict, target: Target, measure: Measure,
-                     data_parallel: int, first: tuple[Any, dict], log=print
-                     ) -> tuple[Any, dict]:
-  """Before the first step: ``first``, the (built, report) of the config's own setting compiled
-  against :func:`training_budget`, when it fits or no limit is known (the host CPU without a
-  budget); else, with ``train.auto_fit``, the first setting of :func:`fit_step` that fits ->
-  (built, report). :class:`DoesNotFitError` when the step cannot fit."""
+                     data_parallel: int, log=print) -> tuple[Any, dict]:
+  """Before the first step: the config's own setting, as ``measure`` compiles it against
+  :func:`training_budget`, when it fits or no limit is known (the host CPU without a budget);
+  else, with ``train.auto_fit``, the first setting of :func:`fit_step` that fits -> (what
+  ``measure`` built, its report). :class:`DoesNotFitError` when the step cannot fit."""
+  budget = training_budget(config, target)
+  first = measure(config.model.remat, config.optim.grad_accum, budget)
   report = first[1]
   if report["fits"] is None or report["fits"]:
     log(f"compiled step: {describe(report)}"
@@ -303,8 +294,7 @@ def fit_for_training(config: ml_collections.ConfigDict, target: Target, measure:
     raise DoesNotFitError(f"the compiled step does not fit: {describe(report)}; set "
                           f"train.auto_fit=True to choose remat and gradient accumulation, or "
                           f"lower batch_size")
-  built, chosen = fit_step(config, target, measure, data_parallel,
-                           training_budget(config, target), first=first, log=log)
+  built, chosen = fit_step(config, target, measure, data_parallel, budget, first=first, log=log)
   log(f"auto_fit chose model.remat={chosen['remat']!r} optim.grad_accum={chosen['grad_accum']}: "
       f"{chosen['total_gib']:.3g} GiB per device of {chosen['limit_gib']:.3g} (the config's "
       f"remat={config.model.remat!r} grad_accum={config.optim.grad_accum} needs "
