@@ -191,6 +191,25 @@ def test_the_pusher_beats_staying_and_noise_hurts():
 
 
 @pytest.mark.unit
+def test_action_repeat_is_a_frame_per_held_action():
+  """``action_repeat = k``: one step holds its target for k control steps and returns the last
+  frame, so a chunk of k equal targets at one frame a step ends where one repeated step does,
+  and the repeated run's frames are every k-th of the stepped run's."""
+  states = pusht.random_initial_states(np.random.default_rng(2), 3)
+  stepped = pusht.simulate_policy(pusht.PushPolicy(chunk=4), states, 16, image_size=32,
+                                  key=jax.random.key(0), context=2)
+  held = pusht.simulate_policy(pusht.PushPolicy(chunk=1), states, 4, image_size=32,
+                               key=jax.random.key(0), context=2, action_repeat=4)
+  assert held["frames"].shape == (3, 6, 32, 32, 3)
+  np.testing.assert_array_equal(held["frames"][:, 2:], stepped["frames"][:, 5::4])
+  np.testing.assert_allclose(held["state"][:, -1], stepped["state"][:, -1], atol=1e-4)
+  assert pusht_data.PushTConfig(action_repeat=4).name.endswith("_k4")
+  assert "_k" not in pusht_data.PushTConfig().name
+  with pytest.raises(ValueError, match="action_repeat"):
+    pusht.PushTSimulator(1, 32, action_repeat=0)
+
+
+@pytest.mark.unit
 def test_config_profiles():
   cpu, h100 = (load_config(str(ROOT / "configs" / f"pusht.py:{p}")) for p in ("cpu", "h100"))
   assert (cpu.model.depth, cpu.batch_size, cpu.model.dtype) == (6, 16, "float32")

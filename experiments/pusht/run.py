@@ -119,7 +119,9 @@ def main(argv=None) -> int:
   parser.add_argument("--minutes", type=float, default=None,
                       help="stop after about this many minutes; rerun to continue")
   parser.add_argument("--episodes", type=int, default=48, help="episodes per policy")
-  parser.add_argument("--steps", type=int, default=32, help="control steps per episode")
+  parser.add_argument("--steps", type=int, default=32,
+                      help="actions per episode (each held for data.pusht.action_repeat control "
+                           "steps)")
   parser.add_argument("--plan_episodes", type=int, default=20, help="seeds for planning")
   parser.add_argument("--plan_steps", type=int, default=24)
   parser.add_argument("--candidates", default="1,5,10,50", help="K values, with 1")

@@ -63,7 +63,8 @@ def _simulator_args(parser, default_out: str) -> None:
   parser.add_argument("--episodes", type=int, default=32,
                       help="episodes, i.e. initial states (default 32)")
   parser.add_argument("--steps", type=int, default=24,
-                      help="control steps per episode (default 24)")
+                      help="actions per episode (default 24), each held for the dataset's "
+                           "data.pusht.action_repeat control steps of 0.1 s")
   parser.add_argument("--seed", type=int, default=0)
   common.checkpoint_args(parser, dtype=False)
   parser.add_argument("--out", default=None, help=f"output directory (WORKDIR/{default_out})")

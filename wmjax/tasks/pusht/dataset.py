@@ -59,6 +59,9 @@ class PushTConfig:
   seed: int = 0
   mix: tuple[float, ...] = (1.0, 0.0, 0.0)  # fractions of scripted push / random / idle agents
   random_reach: float = 160.0
+  # control steps (0.1 s) each action is held for, one frame per action: with 4 and chunk 1, a
+  # frame per decision of the default's 4-step chunks (episode_length counts frames)
+  action_repeat: int = 1
 
   @classmethod
   def from_dict(cls, values) -> "PushTConfig":
@@ -75,9 +78,9 @@ class PushTConfig:
     if self.image_size < 8 or self.episode_length < 2 or not self.noise_levels:
       raise ValueError(f"need image_size >= 8, episode_length >= 2 and noise levels, got "
                        f"{self.image_size}, {self.episode_length}, {self.noise_levels}")
-    if min(self.noise_levels) < 0 or self.chunk < 1 or self.batch < 1:
-      raise ValueError(f"noise levels must be >= 0 and chunk, batch >= 1, got "
-                       f"{self.noise_levels}, {self.chunk}, {self.batch}")
+    if min(self.noise_levels) < 0 or min(self.chunk, self.batch, self.action_repeat) < 1:
+      raise ValueError(f"noise levels must be >= 0 and chunk, batch, action_repeat >= 1, got "
+                       f"{self.noise_levels}, {self.chunk}, {self.batch}, {self.action_repeat}")
 
   @property
   def name(self) -> str:
@@ -87,10 +90,12 @@ class PushTConfig:
             f"_a{self.max_angle:g}_seed{self.seed}{self._mix_name()}")
 
   def _mix_name(self) -> str:
-    """Empty for the default (all scripted), so that today's datasets keep their names."""
+    """Empty for the defaults (all scripted, no action repeat), so that the datasets written
+    before the mix and the repeat existed keep their names."""
+    repeat = "" if self.action_repeat == 1 else f"_k{self.action_repeat}"
     if self.mix == (1.0, 0.0, 0.0):
-      return ""
-    return "_m" + "-".join(f"{f:g}" for f in self.mix) + f"_r{self.random_reach:g}"
+      return repeat
+    return "_m" + "-".join(f"{f:g}" for f in self.mix) + f"_r{self.random_reach:g}" + repeat
 
 
 def episode_kinds(mix, num_episodes: int) -> np.ndarray:
@@ -177,7 +182,8 @@ def collect(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
   for kinds, noise, states, seed in _draws(config, num_episodes, rng):
     policy = _policy(config, kinds, noise, states)
     run = simulator.simulate_policy(policy, states, config.episode_length - 1,
-                                    image_size=config.image_size, key=jax.random.key(seed))
+                                    image_size=config.image_size, key=jax.random.key(seed),
+                                    action_repeat=config.action_repeat)
     for i in range(len(states)):
       actions = np.concatenate([run["actions"][i], run["state"][i, -1:, :2]])  # last: stay
       coverage = run["coverage"][i]
@@ -210,11 +216,13 @@ class PushT(synthetic.SyntheticBuilder):
     return collect(self.params, count, rng)
 
   def metadata(self):
-    """The parameters; the mix's only where it is not the default (all scripted), so that the
-    datasets written before the mix existed are written to the byte as they were."""
+    """The parameters; the mix's and the action repeat's only where they are not the defaults,
+    so that the datasets written before they existed are written to the byte as they were."""
     values = super().metadata()
     if values["mix"] == PushTConfig.mix:
       values = {k: v for k, v in values.items() if k not in ("mix", "random_reach")}
+    if values["action_repeat"] == PushTConfig.action_repeat:
+      values = {k: v for k, v in values.items() if k != "action_repeat"}
     return values
 
   @classmethod

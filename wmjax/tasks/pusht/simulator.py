@@ -233,14 +233,19 @@ def check_installed() -> None:
 
 
 class PushTSimulator:
-  """``B`` gym-pusht environments stepped together, rendering ``image_size`` square frames."""
+  """``B`` gym-pusht environments stepped together, rendering ``image_size`` square frames.
 
-  def __init__(self, num_envs: int, image_size: int = 96):
+  ``action_repeat = k``: one step holds its target for k control steps of 0.1 s (gym-pusht's
+  own), and only the last one's frame is returned: one frame per decision, k times the motion
+  per frame."""
+
+  def __init__(self, num_envs: int, image_size: int = 96, action_repeat: int = 1):
     check_installed()
     import gymnasium as gym
-    if num_envs < 1 or image_size < 8:
-      raise ValueError(f"need num_envs >= 1 and image_size >= 8, got {num_envs}, {image_size}")
-    self.image_size = image_size
+    if num_envs < 1 or image_size < 8 or action_repeat < 1:
+      raise ValueError(f"need num_envs >= 1, image_size >= 8 and action_repeat >= 1, got "
+                       f"{num_envs}, {image_size}, {action_repeat}")
+    self.image_size, self.action_repeat = image_size, action_repeat
     self.envs = [gym.make("gym_pusht/PushT-v0", obs_type="pixels", render_mode="rgb_array",
                           observation_width=image_size, observation_height=image_size)
                  for _ in range(num_envs)]
@@ -254,11 +259,14 @@ class PushTSimulator:
     return np.stack(frames), self._info()
 
   def step(self, actions: np.ndarray) -> tuple[np.ndarray, dict]:
-    """One control step (0.1 s) with target positions ``[B, 2]``: frames ``[B, S, S, 3]``, info
-    with ``coverage`` and ``state`` (``[B]`` / ``[B, 5]``)."""
+    """One step (``action_repeat`` control steps of 0.1 s) towards target positions ``[B, 2]``:
+    frames ``[B, S, S, 3]``, info with ``coverage`` and ``state`` (``[B]`` / ``[B, 5]``)."""
     actions = np.asarray(actions, np.float64)
     if actions.shape != (len(self.envs), 2) or not np.isfinite(actions).all():
       raise ValueError(f"actions must be finite [{len(self.envs)}, 2], got {actions.shape}")
+    for _ in range(self.action_repeat - 1):
+      for env, a in zip(self.envs, actions):
+        env.step(a)
     frames = [env.step(a)[0] for env, a in zip(self.envs, actions)]
     return np.stack(frames), self._info()
 
@@ -296,15 +304,17 @@ def stay_actions(frame_info: dict) -> np.ndarray:
 
 
 def simulate_policy(policy: PolicyFn, states: np.ndarray, steps: int, *, image_size: int,
-                    key: jax.Array, context: int = 1) -> dict[str, np.ndarray]:
-  """Run ``policy`` closed loop in the simulator from ``states [B, 5]``.
+                    key: jax.Array, context: int = 1, action_repeat: int = 1
+                    ) -> dict[str, np.ndarray]:
+  """Run ``policy`` closed loop in the simulator from ``states [B, 5]``, each of its actions held
+  for ``action_repeat`` control steps (:class:`PushTSimulator`; a step below is one action).
 
   The first ``context - 1`` steps keep the agent still (so a world model can start from the same
   ``context`` frames and known actions); then the policy runs for ``steps`` control steps, called
   on the last ``context`` frames whenever its previous chunk is used up (call ``i`` gets
   ``fold_in(key, i)``). Returns ``frames [B, context+steps, S, S, 3]`` uint8, ``actions
   [B, context-1+steps, 2]``, ``coverage [B, context+steps]`` and ``state [B, context+steps, 5]``."""
-  sim = PushTSimulator(len(states), image_size)
+  sim = PushTSimulator(len(states), image_size, action_repeat)
   frames, actions, infos = sim.start(states, context)
 
   def advance(action):
