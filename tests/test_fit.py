@@ -38,6 +38,8 @@ def test_auto_fit_takes_micro_batches_under_a_budget_and_keeps_the_loss():
   plain_context = build_context(config, local)
   _, plain = compile_step(plain_context)
   assert plain["fits"] is None and plain["grad_accum"] == 1  # CPU: no limit without a budget
+  # a step that fits (no limit known) trains with the context it was set up with: one trainer
+  assert fit_to_memory(plain_context, log=lambda line: None)[0] is plain_context
   budget = 0.9 * plain["total_gib"]
   tight = build_context(tiny_config("gridworld.py", *SMALL, f"train.memory_budget_gib={budget}"),
                         local)

@@ -69,6 +69,9 @@ SMOKE = ["data.pusht.train_episodes=16", "data.pusht.test_episodes=4", "model.de
          "optim.total_steps=20", "optim.warmup_steps=5", "train.checkpoint_every=20",
          "train.eval_every=20", "train.eval_windows=4", "data.num_workers=0"]
 UNFINISHED = 3  # exit code: stopped at the deadline, run the same command again
+# episode lengths in control steps of 0.1 s (policy evaluation, planning): the same time whatever
+# the data's action_repeat
+CONTROL_STEPS, PLAN_CONTROL_STEPS = 32, 24
 
 
 class Deadline:
@@ -119,11 +122,12 @@ def main(argv=None) -> int:
   parser.add_argument("--minutes", type=float, default=None,
                       help="stop after about this many minutes; rerun to continue")
   parser.add_argument("--episodes", type=int, default=48, help="episodes per policy")
-  parser.add_argument("--steps", type=int, default=32,
-                      help="actions per episode (each held for data.pusht.action_repeat control "
-                           "steps)")
+  parser.add_argument("--steps", type=int, default=None,
+                      help="actions per episode, each held for data.pusht.action_repeat control "
+                           "steps of 0.1 s (default: 32 control steps' worth)")
   parser.add_argument("--plan_episodes", type=int, default=20, help="seeds for planning")
-  parser.add_argument("--plan_steps", type=int, default=24)
+  parser.add_argument("--plan_steps", type=int, default=None,
+                      help="actions per planning episode (default: 24 control steps' worth)")
   parser.add_argument("--candidates", default="1,5,10,50", help="K values, with 1")
   parser.add_argument("--plan_sampling_steps", type=int, default=None,
                       help="sampler steps when imagining planning candidates (default: the "
@@ -164,18 +168,21 @@ class Experiment:
     self.workdir = os.path.abspath(args.workdir)
     self.config_file = f"{os.path.normpath(CONFIG)}:{args.profile}"
     self.overrides = [f"data.data_dir={os.path.join(self.workdir, 'data')!r}"]
-    self.episodes, self.steps = args.episodes, args.steps
-    self.plan_episodes, self.plan_steps = args.plan_episodes, args.plan_steps
     self.candidates = [int(k) for k in args.candidates.split(",")]
     if args.smoke:
       self.overrides += SMOKE
-      self.episodes, self.steps, self.plan_episodes, self.plan_steps = 4, 8, 2, 8
-      self.candidates = [1, 3]
     self.overrides += args.overrides  # the model's config: given to every stage that reads it
     if 1 not in self.candidates:
       raise SystemExit(f"--candidates must include 1 (the baseline of the gains), got "
                        f"{args.candidates}")
     self.config = load_config(self.config_file, self.overrides)
+    repeat = self.config.data.pusht.action_repeat
+    self.episodes, self.plan_episodes = args.episodes, args.plan_episodes
+    self.steps = args.steps or max(CONTROL_STEPS // repeat, 1)
+    self.plan_steps = args.plan_steps or max(PLAN_CONTROL_STEPS // repeat, 1)
+    if args.smoke:
+      self.episodes, self.steps, self.plan_episodes, self.plan_steps = 4, 8, 2, 8
+      self.candidates = [1, 3]
     self.model_dir = os.path.join(self.workdir, "model")
     self.classifier_dir = os.path.join(self.workdir, "classifier")
 
