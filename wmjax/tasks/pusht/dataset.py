@@ -87,9 +87,9 @@ class PushTConfig:
     noise = "-".join(f"{n:g}" for n in self.noise_levels)
     return (f"s{self.image_size}_l{self.episode_length}_e{self.train_episodes}-"
             f"{self.test_episodes}_n{noise}_c{self.chunk}_o{self.max_offset:g}"
-            f"_a{self.max_angle:g}_seed{self.seed}{self._mix_name()}")
+            f"_a{self.max_angle:g}_seed{self.seed}{self._variant_name()}")
 
-  def _mix_name(self) -> str:
+  def _variant_name(self) -> str:
     """Empty for the defaults (all scripted, no action repeat), so that the datasets written
     before the mix and the repeat existed keep their names."""
     repeat = "" if self.action_repeat == 1 else f"_k{self.action_repeat}"

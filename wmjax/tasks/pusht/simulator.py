@@ -264,10 +264,8 @@ class PushTSimulator:
     actions = np.asarray(actions, np.float64)
     if actions.shape != (len(self.envs), 2) or not np.isfinite(actions).all():
       raise ValueError(f"actions must be finite [{len(self.envs)}, 2], got {actions.shape}")
-    for _ in range(self.action_repeat - 1):
-      for env, a in zip(self.envs, actions):
-        env.step(a)
-    frames = [env.step(a)[0] for env, a in zip(self.envs, actions)]
+    for _ in range(self.action_repeat):
+      frames = [env.step(a)[0] for env, a in zip(self.envs, actions)]
     return np.stack(frames), self._info()
 
   def _info(self) -> dict:
@@ -310,7 +308,7 @@ def simulate_policy(policy: PolicyFn, states: np.ndarray, steps: int, *, image_s
   for ``action_repeat`` control steps (:class:`PushTSimulator`; a step below is one action).
 
   The first ``context - 1`` steps keep the agent still (so a world model can start from the same
-  ``context`` frames and known actions); then the policy runs for ``steps`` control steps, called
+  ``context`` frames and known actions); then the policy runs for ``steps`` steps, called
   on the last ``context`` frames whenever its previous chunk is used up (call ``i`` gets
   ``fold_in(key, i)``). Returns ``frames [B, context+steps, S, S, 3]`` uint8, ``actions
   [B, context-1+steps, 2]``, ``coverage [B, context+steps]`` and ``state [B, context+steps, 5]``."""
