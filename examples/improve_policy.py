@@ -14,7 +14,6 @@ import numpy as np
 
 from wmjax import registry
 from wmjax.model import load_model
-from wmjax.tasks import import_task, task_module
 from wmjax.train.improve import ImproveSettings, improve, world_model_rollout
 from wmjax.train.policy import clone_policy
 
@@ -28,8 +27,7 @@ def main(argv=None):
   parser.add_argument("--fit_steps", type=int, default=150)
   args = parser.parse_args(argv)
 
-  model = load_model(args.workdir)
-  import_task(task_module(model.config))                   # registers the gridworld's tasks
+  model = load_model(args.workdir)                        # imports its task, the gridworld
   task = registry.control_task("reach", model.config)
   policy, _ = clone_policy(model, task.controls,          # the green square's velocity only
                            steps=args.clone_steps)         # behaviour cloning

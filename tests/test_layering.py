@@ -234,14 +234,15 @@ def test_the_check_sees_imports_made_when_a_function_runs(tmp_path):
 
 def test_code_below_the_tasks_finds_a_task_once_an_entry_point_imports_it(tmp_path):
   """Nothing below the tasks' layer imports a task: until the task a config names is imported
-  (as the entry points do, wmjax.tasks.with_task), its metrics, rewards and generated datasets
+  (as completing the config does, wmjax.config.import_task), its metrics, rewards and generated datasets
   are unknown, and a generated dataset's error says where its task is named; after, they are
   found, and a generated dataset is made on first use."""
   data = (f"ml_collections.ConfigDict(dict(dataset='gridworld', data_dir={str(tmp_path)!r}, "
           f"gridworld=dict(train_episodes=2, test_episodes=1, episode_length=4)))")
   found = subprocess.run([sys.executable, "-c", (
       "import sys, ml_collections\n"
-      "from wmjax import registry, tasks\n"
+      "from wmjax import registry\n"
+      "from wmjax.config import import_task\n"
       "from wmjax.data.sources import dataset_dir\n"
       "assert registry.frame_metrics_of('pusht') is None and not registry.rewards()\n"
       "try:\n"
@@ -249,7 +250,7 @@ def test_code_below_the_tasks_finds_a_task_once_an_entry_point_imports_it(tmp_pa
       "except ValueError as e:\n"
       "  assert 'config.task' in str(e), e\n"
       "assert not [m for m in sys.modules if m.startswith('wmjax.tasks.')]\n"
-      "tasks.import_task('wmjax.tasks.pusht'); tasks.import_task('wmjax.tasks.gridworld')\n"
+      "import_task('wmjax.tasks.pusht'); import_task('wmjax.tasks.gridworld')\n"
       "print(registry.frame_metrics_of('pusht').headline, sorted(registry.rewards()))\n"
       f"print(dataset_dir({data}))\n")],
       capture_output=True, text=True)

@@ -5,11 +5,10 @@ A config is an ``ml_collections.ConfigDict`` whose sections follow the dataclass
 for ``model``, ``sampling`` and ``data.spec``, the dataclasses they configure:
 :class:`wmjax.nn.STDiT`, :class:`wmjax.diffusion.SamplerConfig`,
 :class:`wmjax.data.oxe.DatasetSpec`; ``data.<generated dataset>`` follows that dataset's
-parameters, e.g. :class:`~wmjax.tasks.gridworld.dataset.GridworldConfig`, known once the task
-that generates it is imported: ``task`` names it). :func:`complete_config` checks a config
-against them: an unknown key raises :class:`ConfigError` naming the nearest valid keys, a value
-of the wrong type raises naming the type wanted, and every key left out takes its default here,
-so code reads ``config.data.train_split`` and never repeats a default. Config files and
+parameters, e.g. :class:`~wmjax.tasks.gridworld.dataset.GridworldConfig`, of the task module
+``task`` names). :func:`complete_config` imports that task and checks a config against them:
+an unknown key raises :class:`ConfigError` naming the nearest valid keys, a value of the wrong
+type raises naming the type wanted, and every key left out takes its default here, so code reads ``config.data.train_split`` and never repeats a default. Config files and
 overrides are checked when they are loaded (:func:`load_config`); a config saved by an older
 version (a workdir's ``config.json``, a checkpoint's) loads with the keys added since at their
 defaults (``strict=False`` also keeps keys since removed).
@@ -124,8 +123,8 @@ class DataConfig:
   @staticmethod
   def extra_sections() -> dict[str, type]:
     """``data.<name>`` sections beyond the fields: the parameters of each generated dataset of
-    the tasks imported so far (:func:`wmjax.registry.generated_datasets`; a config file imports
-    its task, e.g. for the parameters' dataclass, and the entry points import ``config.task``)."""
+    the tasks imported so far (:func:`wmjax.registry.generated_datasets`; completing a config
+    imports its task first)."""
     return {name: d.params for name, d in registry.generated_datasets().items()}
 
 
@@ -204,7 +203,7 @@ class Config:
   batch_size: int  # global
   name: str = ""
   # the task module the run uses (its generated dataset, metrics, rewards), e.g.
-  # "wmjax.tasks.gridworld"; imported by the entry points (wmjax.tasks.with_task); "" for none
+  # "wmjax.tasks.gridworld"; imported when the config is completed (import_task); "" for none
   task: str = ""
   codec: Any = _section(CodecConfig)
   data: Any = _section(DataConfig)
@@ -455,18 +454,60 @@ def _without_retired(config: Mapping, strict: bool) -> dict:
 
 def complete_config(config: Mapping | ml_collections.ConfigDict, strict: bool = True
                     ) -> ml_collections.ConfigDict:
-  """``config`` checked against :class:`Config` with every key left out at its default.
+  """``config`` checked against :class:`Config` with every key left out at its default, once
+  the task it names is imported (:func:`import_task`; ``task`` as :func:`task_module` finds it).
 
   Unknown keys and values of the wrong type raise :class:`ConfigError`; ``strict=False`` (for a
   config saved by another version) keeps unknown keys as they are instead, but drops those of
   :data:`RETIRED_KEYS`, which a new config may not hold.
   """
-  completed = ml_collections.ConfigDict(_complete(Config, _without_retired(config, strict), "",
-                                                  strict))
-  if completed.task and not all(part.isidentifier() for part in completed.task.split(".")):
-    raise ConfigError(f"config key 'task' must name a module, e.g. 'wmjax.tasks.gridworld', "
-                      f"got {completed.task!r}")
+  config = _without_retired(config, strict)
+  if isinstance(config.get("task"), _Text):  # an override's: the module's name as written
+    config["task"] = config["task"].text
+  module = task_module(config)
+  if module:
+    import_task(module)
+  completed = ml_collections.ConfigDict(_complete(Config, config, "", strict))
+  completed.task = module
   return completed
+
+
+# --------------------------------------------------------------------------------------------
+# The task a config names: a module imported by name (as big_vision imports the evaluators its
+# config names), which registers what it adds (wmjax.registry) when imported.
+
+# the tasks that come with wmjax, by the dataset each generates: a config that names no task but
+# one of these datasets (one saved before ``task`` existed) uses that task
+BUILT_IN_TASKS = {"gridworld": "wmjax.tasks.gridworld", "pusht": "wmjax.tasks.pusht"}
+
+
+def task_module(config: Mapping) -> str:
+  """The task module of a config (complete or as saved): ``task``, else the built-in task that
+  generates ``data.dataset`` (``""`` if none)."""
+  dataset = (config.get("data") or {}).get("dataset") or ""
+  return config.get("task") or BUILT_IN_TASKS.get(dataset, "")
+
+
+def import_task(module: str) -> registry.Task:
+  """Import the task module ``module``; the task it registers. A name that is no module, or a
+  module that registers no task, is a :class:`ConfigError`."""
+  if not isinstance(module, str) or not all(part.isidentifier() for part in module.split(".")):
+    raise ConfigError(f"config key 'task' must name a module, e.g. 'wmjax.tasks.gridworld', "
+                      f"got {module!r}")
+  try:
+    importlib.import_module(module)
+  except ModuleNotFoundError as e:
+    if not e.name or not (module == e.name or module.startswith(e.name + ".")):
+      raise  # a module the task needs is missing, not the task
+    close = difflib.get_close_matches(module, BUILT_IN_TASKS.values(), n=1, cutoff=0.6)
+    hint = (f"did you mean {close[0]}?" if close else
+            f"the built-in tasks are {', '.join(BUILT_IN_TASKS.values())}")
+    raise ConfigError(f"config.task {module!r} is no module; {hint}") from None
+  task = registry.task(module)
+  if task is None:
+    raise ConfigError(f"config.task {module!r} is a module but registers no task: a task module "
+                      f"calls wmjax.registry.register(Task({module!r}, ...)) when imported")
+  return task
 
 
 def section_config(section: str, **values) -> ml_collections.ConfigDict:

@@ -3,7 +3,7 @@ instead of special-cased.
 
 A task module (``wmjax.tasks.gridworld``, ``wmjax.tasks.pusht``, or one of your own) calls
 :func:`register` with a :class:`Task` when it is imported; a config names the module it uses
-(``config.task``) and the entry points import it (:func:`wmjax.tasks.with_task`). Nothing here
+(``config.task``) and completing the config imports it (:func:`wmjax.config.import_task`). Nothing here
 imports a task: a lookup finds what has been registered, and the code below the tasks' layer
 (data, eval, train) asks only here. A task adds
 

@@ -34,7 +34,6 @@ from wmjax import registry
 from wmjax.eval.video import frame_grid, write_png
 from wmjax.model import load_model
 from wmjax.policy import LearnedPolicy
-from wmjax.tasks import import_task, task_module
 from wmjax.train.improve import ImproveSettings, improve_on_task, report_table
 from wmjax.train.policy import clone_policy
 
@@ -78,7 +77,6 @@ def main(argv=None) -> int:
   args = parse_args(argv)
   began = time.time()
   model = load_model(args.workdir)
-  import_task(task_module(model.config))
   task = registry.control_task("reach", model.config)
   start, losses = clone_policy(model, task.controls, steps=args.clone_steps, seed=args.seed)
   cloned = time.time()

@@ -106,12 +106,12 @@ def _bool(text: str) -> bool:
 def _add_prepare(data_sub) -> None:
   """``data prepare NAME``: one subcommand per generated dataset of the built-in tasks, one flag
   per field of its parameter dataclass."""
-  from wmjax import tasks
+  from wmjax.config import BUILT_IN_TASKS, import_task
   parser = data_sub.add_parser("prepare", help="generate a dataset (RLDS, ArrayRecord)",
                                description=prepare.__doc__)
   prepare_sub = parser.add_subparsers(dest="dataset", required=True)
-  generated = {name: d for module in tasks.BUILT_IN
-               for name, d in tasks.import_task(module).datasets.items()}
+  generated = {name: d for module in BUILT_IN_TASKS.values()
+               for name, d in import_task(module).datasets.items()}
   for name, made in generated.items():
     dataset = prepare_sub.add_parser(name, help=f"generate the {name} dataset",
                                      description=prepare.__doc__)

@@ -14,9 +14,7 @@ from wmjax.cli import common
 def _model_and_task(args):
   from wmjax import registry
   from wmjax.model import load_model
-  from wmjax.tasks import import_task, task_module
   model = load_model(args.workdir, step=args.step, params=args.params)
-  import_task(task_module(model.config))
   return model, registry.control_task(args.task, model.config)
 
 

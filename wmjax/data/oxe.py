@@ -259,7 +259,7 @@ def specs_from_config(data: Mapping[str, Any]) -> tuple[DatasetSpec, ...]:
                      f"{sorted(SPECS)}; for another RLDS dataset set config.data.spec (run "
                      f"`wmjax data inspect BUILDER_DIR` for a suggestion); a dataset a task "
                      f"generates is known once the task module config.task names is imported "
-                     f"(wmjax.tasks.with_task(config) imports it)")
+                     f"(wmjax.config.complete_config(config) imports it)")
   overrides = {}
   for key, field in CONFIG_OVERRIDES.items():
     value = data.get(key)

@@ -19,7 +19,6 @@ from wmjax.eval.frechet import FrechetDistances
 from wmjax.eval.protocols import evaluate_protocols
 from wmjax.eval.report import markdown_report, to_json_safe
 from wmjax.model import load_model
-from wmjax.tasks import with_task
 
 
 def import_function(path: str | None) -> Callable | None:
@@ -49,7 +48,7 @@ def evaluate_checkpoint(workdir: str, *, split: str | None = None, out: str | No
     raise ValueError(f"protocols must be among short, long, sweep; got {list(protocols)}")
   model = load_model(workdir, step=step, params=params, overrides=overrides,
                      param_dtype=param_dtype)
-  config = with_task(model.config, strict=False)  # its dataset and metrics may be a task's
+  config = model.config  # completed on loading, its task imported
   data = member_configs(config.data)[0]  # a mixture is evaluated on its first dataset
   split = split or data.eval_split
   dataset = open_dataset(data)

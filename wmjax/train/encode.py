@@ -10,11 +10,10 @@ import ml_collections
 import numpy as np
 
 from wmjax.codecs import make_codec
-from wmjax.config import ConfigError
+from wmjax.config import ConfigError, complete_config
 from wmjax.data.latents import codec_description, encode_dataset
 from wmjax.data.sources import member_configs, open_dataset
 from wmjax.frames import to_model
-from wmjax.tasks import with_task
 
 
 def encode_latents(config: ml_collections.ConfigDict, out: str,
@@ -23,7 +22,7 @@ def encode_latents(config: ml_collections.ConfigDict, out: str,
   """Encode the ``splits`` (default: the data's train and eval splits) of the config's dataset
   (``dataset`` names the member of a mixture) into ArrayRecord latents under ``out``; returns
   it. Train from them with ``data.latents_dir=OUT``."""
-  config = with_task(config)
+  config = complete_config(config)
   members = {m.dataset: m for m in member_configs(config.data)}
   if dataset is None and len(members) > 1:
     raise ConfigError(f"the config mixes {sorted(members)}; pick one with --dataset")

@@ -43,6 +43,7 @@ import numpy as np
 
 from wmjax import parallel
 from wmjax.codecs import PixelCodec
+from wmjax.config import complete_config
 from wmjax.data.pipeline import training_pipeline
 from wmjax.diffusion import LevelSampling, diffusion_loss
 from wmjax.errors import CheckpointError, RunError
@@ -52,7 +53,6 @@ from wmjax.eval.video import comparison, stack_rows, write_video
 from wmjax.frames import to_model
 from wmjax.model import LoadedModel, WorldModel
 from wmjax.registry import frame_metrics_of
-from wmjax.tasks import with_task
 from wmjax.train.checkpoint import Checkpointer, shapes_by_path
 from wmjax.train.context import TrainContext, set_up
 from wmjax.train.data import eval_trajectories
@@ -248,13 +248,14 @@ def train(config: ml_collections.ConfigDict, workdir: str, *,
   """Train (or resume) in ``workdir``; returns the final train state and evaluation metrics
   (only ``step`` with ``train.eval_every=0``).
 
-  The task ``config.task`` names is imported first (:func:`wmjax.tasks.with_task`). A resumed
+  The config is completed first, which imports the task ``config.task`` names
+  (:func:`wmjax.config.complete_config`). A resumed
   run must match the config of its checkpoint except for
   :data:`wmjax.train.resume.SAFE_ON_RESUME` and the keys (or sections) named in
   ``allow_config_change``; see :mod:`wmjax.train.resume`. Stopped by SIGTERM or Ctrl-C, it saves
   a checkpoint (if the state is finite) and returns ``{'step', 'stopped', 'signal'}`` as metrics.
   """
-  config = with_task(config)
+  config = complete_config(config)
   with claimed(workdir, lock=jax.process_index() == 0) as workdir:
     with _library_logs_to(os.path.join(workdir, LIBRARY_LOG)):
       return _train(config, workdir, tuple(allow_config_change))

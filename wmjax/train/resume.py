@@ -46,12 +46,11 @@ def flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
 
 def _with_defaults(saved: dict) -> dict:
   """A saved config with the keys added since it was written at their defaults (so that a new
-  key is not a change; ``task`` as :func:`wmjax.tasks.task_module` infers it for a config saved
+  key is not a change; ``task`` as :func:`wmjax.config.task_module` infers it for a config saved
   before the key existed); keys since removed are compared as saved."""
-  from wmjax.config import ConfigError
-  from wmjax.tasks import with_task
+  from wmjax.config import ConfigError, complete_config
   try:
-    return json.loads(with_task(saved, strict=False).to_json())
+    return json.loads(complete_config(saved, strict=False).to_json())
   except ConfigError:  # a section whose shape has changed: compare as saved
     return dict(saved)
 
