@@ -1,17 +1,18 @@
 """Configs: the schema of every section with its defaults, ``ml_collections`` config files
 (``path/to/config.py[:arg]``) and ``--config.KEY=VALUE`` overrides.
 
-A config is an ``ml_collections.ConfigDict`` whose sections follow the dataclasses below (and,
-for ``model``, ``sampling`` and ``data.spec``, the dataclasses they configure:
-:class:`wmjax.nn.STDiT`, :class:`wmjax.diffusion.SamplerConfig`,
-:class:`wmjax.data.oxe.DatasetSpec`; ``data.<generated dataset>`` follows that dataset's
-parameters, e.g. :class:`~wmjax.tasks.gridworld.dataset.GridworldConfig`, of the task module
-``task`` names). :func:`complete_config` imports that task and checks a config against them:
-an unknown key raises :class:`ConfigError` naming the nearest valid keys, a value of the wrong
-type raises naming the type wanted, and every key left out takes its default here, so code reads ``config.data.train_split`` and never repeats a default. Config files and
-overrides are checked when they are loaded (:func:`load_config`); a config saved by an older
-version (a workdir's ``config.json``, a checkpoint's) loads with the keys added since at their
-defaults (``strict=False`` also keeps keys since removed).
+A config is an ``ml_collections.ConfigDict`` whose sections follow the dataclasses below (and, for
+``model``, ``sampling`` and ``data.spec``, the dataclasses they configure: :class:`wmjax.nn.STDiT`,
+:class:`wmjax.diffusion.SamplerConfig`, :class:`wmjax.data.oxe.DatasetSpec`; ``data.<generated
+dataset>`` follows that dataset's parameters, e.g.
+:class:`~wmjax.tasks.gridworld.dataset.GridworldConfig`, of the task module ``task`` names).
+:func:`complete_config` imports that task and checks a config against them: an unknown key raises
+:class:`ConfigError` naming the nearest valid keys, a value of the wrong type raises naming the type
+wanted, and every key left out takes its default here, so code reads ``config.data.train_split`` and
+never repeats a default. Config files and overrides are checked when they are loaded
+(:func:`load_config`); a config saved by an older version (a workdir's ``config.json``, a
+checkpoint's) loads with the keys added since at their defaults (``strict=False`` also keeps keys
+since removed).
 """
 
 from __future__ import annotations
