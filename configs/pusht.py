@@ -1,32 +1,33 @@
 """Push-T world model (gym-pusht) for policy evaluation and planning.
 
-48x48 RGB renders of scripted pushes at several noise levels (``wmjax.tasks.pusht.dataset``),
-2-dim actions (the agent's target position, standardised, with the sines and cosines of
-2^k pi a beside each number); an ST-DiT with 4x4 patches (144 tokens a frame), each layer a
-temporal block then a spatial one, with both absolute (sin-cos) and relative (RoPE) positions over
-the patch grid: the action names an absolute place in the image, the move it causes is a relative
-offset. Trained on 3-frame windows, two clean frames and the next one noised (IRASim's regime), to
-predict the clean next frame (x0) at noise levels drawn logit-normal towards noise. Two context
-frames, because the agent follows a PD controller (a second-order system): one frame does not
-tell its velocity, so its next position would be ambiguous. The loss weighs the pixels within
-3 of an object (agent, T, goal) of the last context frame 21 times (``diffusion.object_weight=20,
-object_dilation=3``): the 3-pixel agent is under 1 % of the frame, and an unweighted MSE is
-lowest for a model that drops it (it did, also with two context frames). Rollouts chain
-one-frame blocks from two context frames, each in 2 DDIM steps with the temporal KV cache; the
-policies still act in chunks of 4 (``data.pusht.chunk``), whatever the block length.
-``experiments/pusht/RESULTS.md`` has the measurements behind each choice.
+48x48 RGB renders (``wmjax.tasks.pusht.dataset``) of episodes whose agents push the T with the
+scripted pusher at several noise levels (half of them), wander to random targets near the T, so
+it is touched from every side (a quarter), or stand still (a quarter: the T must stay put when
+nothing touches it). Each action, the agent's target position, is held for 4 control steps of
+0.1 s and only the last frame is kept: one frame per decision, 10 frames an episode. Actions are
+2-dim (standardised, with the sines and cosines of 2^k pi a beside each number) and each patch is
+also told how far it lies from the place the action points at (``model.action_place``). An
+ST-DiT with 4x4 patches (144 tokens a frame), each layer a temporal block then a spatial one,
+with both absolute (sin-cos) and relative (RoPE) positions over the patch grid. Trained on
+3-frame windows, two clean frames and the next one noised (IRASim's regime), to predict the clean
+next frame (x0) at noise levels drawn logit-normal towards noise. Two context frames, because the
+agent follows a PD controller (a second-order system): one frame does not tell its velocity. The
+loss weighs the pixels within 3 of an object (agent, T, goal) of the last context frame 21 times
+(``diffusion.object_weight=20, object_dilation=3``): the 3-pixel agent is under 1 % of the
+frame, and an unweighted MSE is lowest for a model that drops it. Rollouts chain one-frame
+blocks from two context frames, each in 8 DDIM steps with the temporal KV cache (2 steps leave
+the sample near the blurred mean: the ranking of one training seed went from Pearson 0.45 to
+0.84). ``experiments/pusht/RESULTS.md`` has the measurements behind each choice.
 
 Profiles (``configs/pusht.py:PROFILE``):
 
-- ``cpu`` (default): 1.9M parameters (depth 6, width 128), 640 training episodes, batch 16 in
-  float32, sized for the whole experiment (``experiments/pusht/run.py``) in 90 minutes on 2 CPU
-  cores.
+- ``cpu`` (default): 1.9M parameters (depth 6, width 128), 1920 training episodes, 3000 steps of
+  batch 16 in float32, sized for the whole experiment (``experiments/pusht/run.py``) on 2 CPU
+  cores (about 75 minutes of training).
 - ``h100``: the same recipe and data at 32.5M parameters (depth 12, width 384, 6 heads) in
-  bfloat16 with the fastest attention the GPU has, 3000 steps of batch 64 at learning rate 8e-4
-  (about 2 minutes of one H100 at 27 steps/s), checkpointed every 500 steps so that a run cut by
-  a job limit resumes. This is the profile whose model ranks the five policies as the simulator
-  does (Spearman 1.0, Pearson 0.87) and gains from planning; the 2-core profile's does not
-  (``experiments/pusht/RESULTS.md``).
+  bfloat16 with the fastest attention the GPU has, 3000 steps of batch 64 at learning rate 8e-4,
+  checkpointed every 500 steps so that a run cut by a job limit resumes. Not yet run with this
+  recipe (``experiments/pusht/RESULTS.md`` has the earlier recipe's GPU runs).
 """
 
 import dataclasses
@@ -47,7 +48,8 @@ def get_config(profile: str = "cpu") -> ml_collections.ConfigDict:
   config = ml_collections.ConfigDict()
   config.name = "pusht" if profile == "cpu" else f"pusht-{profile}"
   config.task = "wmjax.tasks.pusht"  # its dataset, metrics and coverage reward
-  pusht = PushTConfig(train_episodes=640)
+  pusht = PushTConfig(train_episodes=1920, episode_length=10, chunk=1, action_repeat=4,
+                      mix=(0.5, 0.25, 0.25))
   config.frame_shape = (pusht.image_size, pusht.image_size, 3)
   config.codec = codec_config(kind="pixel")
 
@@ -59,19 +61,20 @@ def get_config(profile: str = "cpu") -> ml_collections.ConfigDict:
   config.model = model_config(
       in_channels=3, patch_size=4, depth=6, hidden_size=128, num_heads=4, num_frames=3,
       action_dim=2, cond="per_frame", action_embed_ratio=0, action_fourier_features=4,
-      causal_temporal=True, temporal_first=True, spatial_pos="sincos+rope", action_dropout=0.1)
+      causal_temporal=True, temporal_first=True, spatial_pos="sincos+rope", action_dropout=0.1,
+      action_place=(0, 1))
   config.diffusion = ml_collections.ConfigDict(dict(
       kind="gaussian", schedule="sigmoid", num_timesteps=1000, prediction="x0",
       regime="irasim", num_context=2, level_distribution="logit_normal", level_loc=1.0,
       object_weight=20.0, object_dilation=3))
-  config.sampling = sampling_config(sampler="ddim", num_steps=2, matrix="autoregressive",
+  config.sampling = sampling_config(sampler="ddim", num_steps=8, matrix="autoregressive",
                                     context_level=0.0, clip_denoised=True, kv_cache=True)
   config.rollout = ml_collections.ConfigDict(dict(context=2, horizon=1, short_actions=4))
   config.optim = optim_config(learning_rate=2e-3, schedule="cosine", warmup_steps=100,
-                              total_steps=1500, b2=0.99, grad_clip=1.0, ema_decay=0.999)
+                              total_steps=3000, b2=0.99, grad_clip=1.0, ema_decay=0.999)
   config.train = ml_collections.ConfigDict(dict(
-      num_steps=1500, log_every=50, checkpoint_every=500, eval_every=1500, eval_windows=32,
-      max_checkpoints=3,
+      num_steps=3000, log_every=50, checkpoint_every=750, eval_every=3000, eval_windows=32,
+      max_checkpoints=4,
       # fit before the first step: compiled memory against the device's limit (or the budget)
       auto_fit=True, memory_budget_gib=None))
   config.mesh = (-1, 1, 1)  # (data, fsdp, tensor)

@@ -213,9 +213,13 @@ def test_action_repeat_is_a_frame_per_held_action():
 def test_config_profiles():
   cpu, h100 = (load_config(str(ROOT / "configs" / f"pusht.py:{p}")) for p in ("cpu", "h100"))
   assert (cpu.model.depth, cpu.batch_size, cpu.model.dtype) == (6, 16, "float32")
-  for profile in (cpu, h100):  # one recipe: the next frame from two clean ones, in 2 DDIM steps
+  for profile in (cpu, h100):  # one recipe: the next frame from two clean ones, in 8 DDIM steps
     assert (profile.model.num_frames, profile.rollout.context, profile.rollout.horizon) == (3, 2, 1)
-    assert (profile.diffusion.prediction, profile.sampling.num_steps) == ("x0", 2)
+    assert (profile.diffusion.prediction, profile.sampling.num_steps) == ("x0", 8)
+    # a frame per decision (each action held 4 control steps), agents that touch the T from
+    # every side and idle ones, and the action's place told to every patch
+    assert (profile.data.pusht.action_repeat, profile.data.pusht.chunk) == (4, 1)
+    assert profile.data.pusht.mix == (0.5, 0.25, 0.25) and profile.model.action_place == (0, 1)
   assert (h100.model.depth, h100.model.hidden_size, h100.batch_size) == (12, 384, 64)
   assert (h100.model.dtype, h100.train.num_steps) == ("bfloat16", 3000)
   assert h100.data.pusht == cpu.data.pusht  # one dataset: prepared once, carried to a GPU
