@@ -24,7 +24,7 @@ from wmjax.tasks.pusht import dataset as pusht_data
 from wmjax.tasks.pusht import metrics as pusht_metrics
 from wmjax.tasks.pusht import simulator as pusht
 from wmjax.tasks.gridworld import dataset as gridworld_data
-from wmjax.tasks.pusht.evaluate import held_out, initial_states, summarize
+from wmjax.tasks.pusht.evaluate import actions_for, held_out, initial_states, summarize
 from wmjax.tasks.pusht.rewards import coverage
 
 
@@ -188,6 +188,15 @@ def test_the_pusher_beats_staying_and_noise_hurts():
   assert final["push"] > final["stay"] + 0.05 and final["push"] > final["push:0.5"] + 0.05
   with pytest.raises(ValueError, match="policy spec"):
     pusht.policy_from_spec("teleport", 4)
+
+
+@pytest.mark.unit
+def test_episode_lengths_default_to_the_same_time_whatever_the_action_repeat():
+  """eval-policy's and plan's default --steps (and run.py's): actions of a given number of
+  control steps, each held action_repeat of them."""
+  held = load_config(str(ROOT / "configs" / "pusht.py"))
+  each = load_config(str(ROOT / "configs" / "pusht.py"), ["data.pusht.action_repeat=1"])
+  assert (actions_for(held, 24), actions_for(each, 24), actions_for(held, 3)) == (6, 24, 1)
 
 
 @pytest.mark.unit

@@ -176,10 +176,10 @@ class Experiment:
       raise SystemExit(f"--candidates must include 1 (the baseline of the gains), got "
                        f"{args.candidates}")
     self.config = load_config(self.config_file, self.overrides)
-    repeat = self.config.data.pusht.action_repeat
+    from wmjax.tasks.pusht.evaluate import actions_for
     self.episodes, self.plan_episodes = args.episodes, args.plan_episodes
-    self.steps = args.steps or max(CONTROL_STEPS // repeat, 1)
-    self.plan_steps = args.plan_steps or max(PLAN_CONTROL_STEPS // repeat, 1)
+    self.steps = args.steps or actions_for(self.config, CONTROL_STEPS)
+    self.plan_steps = args.plan_steps or actions_for(self.config, PLAN_CONTROL_STEPS)
     if args.smoke:
       self.episodes, self.steps, self.plan_episodes, self.plan_steps = 4, 8, 2, 8
       self.candidates = [1, 3]

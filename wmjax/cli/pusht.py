@@ -7,6 +7,9 @@ from __future__ import annotations
 
 from wmjax.cli import common
 
+# episode length when --steps is not given, in control steps of 0.1 s: the same time whatever the
+# dataset's action_repeat
+DEFAULT_CONTROL_STEPS = 24
 OVERRIDES_NOTE = ("Push-T only. Inference settings of the checkpoint's config can be overridden, "
                   "e.g. --config.sampling.num_steps=4.")
 
@@ -23,13 +26,14 @@ def eval_policy(args, extra) -> int:
   rank agreement, MMRV, value gap; writes policy_eval.json, policy_eval.md and one video per
   policy (simulator | world model | difference)."""
   from wmjax.eval.rewards import reward_from_spec
-  from wmjax.tasks.pusht.evaluate import (evaluate_policies, policies_from_specs, policy_chunk,
-                                          policy_report)
+  from wmjax.tasks.pusht.evaluate import (actions_for, evaluate_policies, policies_from_specs,
+                                          policy_chunk, policy_report)
   model = _load(args, extra)
   policies = policies_from_specs(args.policy, policy_chunk(model.config))
   rewards = {spec: reward_from_spec(spec) for spec in args.reward or ["coverage"]}
   out = args.out or f"{args.workdir}/policy_eval"
-  result = evaluate_policies(model, policies, rewards, episodes=args.episodes, steps=args.steps,
+  steps = args.steps or actions_for(model.config, DEFAULT_CONTROL_STEPS)
+  result = evaluate_policies(model, policies, rewards, episodes=args.episodes, steps=steps,
                              seed=args.seed, scan=args.scan, out=out, videos=args.videos,
                              video_format=args.video_format)
   print(policy_report(result))
@@ -43,14 +47,16 @@ def plan(args, extra) -> int:
   scored by the value function, and the best one's first actions are executed; final simulator
   coverage for each K."""
   from wmjax.eval.rewards import reward_from_spec
-  from wmjax.tasks.pusht.evaluate import plan_in_simulator, policy_chunk, proposal_from_spec
+  from wmjax.tasks.pusht.evaluate import (actions_for, plan_in_simulator, policy_chunk,
+                                          proposal_from_spec)
   model = _load(args, extra)
   length = args.plan_length or policy_chunk(model.config)
   proposal = proposal_from_spec(args.proposal, length)
   out = args.out or f"{args.workdir}/plan"
   candidates = [int(k) for k in args.candidates.split(",")]
   result = plan_in_simulator(model, proposal, reward_from_spec(args.value), candidates,
-                             episodes=args.episodes, steps=args.steps, seed=args.seed,
+                             episodes=args.episodes, seed=args.seed,
+                             steps=args.steps or actions_for(model.config, DEFAULT_CONTROL_STEPS),
                              execute=args.execute or length, lookahead=args.lookahead, out=out)
   print(result["table"])
   print(f"wrote {out}/plan.json and plan.md")
@@ -62,9 +68,10 @@ def _simulator_args(parser, default_out: str) -> None:
                       help="workdir of a model trained on Push-T, with checkpoints/")
   parser.add_argument("--episodes", type=int, default=32,
                       help="episodes, i.e. initial states (default 32)")
-  parser.add_argument("--steps", type=int, default=24,
-                      help="actions per episode (default 24), each held for the dataset's "
-                           "data.pusht.action_repeat control steps of 0.1 s")
+  parser.add_argument("--steps", type=int, default=None,
+                      help=f"actions per episode, each held for the dataset's "
+                           f"data.pusht.action_repeat control steps of 0.1 s (default: "
+                           f"{DEFAULT_CONTROL_STEPS} control steps' worth)")
   parser.add_argument("--seed", type=int, default=0)
   common.checkpoint_args(parser, dtype=False)
   parser.add_argument("--out", default=None, help=f"output directory (WORKDIR/{default_out})")

@@ -68,6 +68,12 @@ def policy_chunk(config) -> int:
   return PushTConfig.from_dict(config.data.get("pusht") or {}).chunk
 
 
+def actions_for(config, control_steps: int) -> int:
+  """Actions that take ``control_steps`` control steps of 0.1 s with the config's dataset, each
+  action held for ``data.pusht.action_repeat`` of them (at least one action)."""
+  return max(1, control_steps // _params(config).action_repeat)
+
+
 def _image_size(model) -> int:
   h, w, _ = model.image_shape
   if h != w:
