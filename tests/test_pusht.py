@@ -431,7 +431,7 @@ def _check_summary(result: dict, plan: dict) -> None:
 @pytest.mark.integration
 def test_experiment_script_runs_its_stages_resumably(experiment, capsys):
   """run.py's stages, resumable; its policy and plan stages are the `wmjax eval-policy` and
-  `wmjax plan` commands end to end (--smoke: 4 episodes of 8 steps, planning 2 of 8, K 1 and 3),
+  `wmjax plan` commands end to end (--smoke: 4 episodes of 8 steps, planning 2 of 4, K 1 and 3),
   so their outputs are checked here too."""
   run, args = experiment
   root = Path(args[1])
@@ -462,7 +462,8 @@ def test_experiment_script_runs_its_stages_resumably(experiment, capsys):
   assert "held out from the training split: True" in report and "The T at the last step" in report
   plan = json.loads((root / "plan" / "plan.json").read_text())  # the K runs merged
   assert set(plan["candidates"]) == {"1", "3"} and plan["held_out"] is True
-  assert plan["candidates"]["3"]["world_model"]["replans"] == 2  # 8 steps, 4 executed per plan
+  # 4 steps, one executed per plan (the profile acts one held action at a time: chunk 1)
+  assert plan["candidates"]["3"]["world_model"]["replans"] == 4
   assert set(plan["candidates"]["1"]) == {"world_model", "simulator"}  # --lookahead
   assert "| 3 |" in capsys.readouterr().out
   _check_summary(result, plan)

@@ -181,7 +181,7 @@ class Experiment:
     self.steps = args.steps or actions_for(self.config, CONTROL_STEPS)
     self.plan_steps = args.plan_steps or actions_for(self.config, PLAN_CONTROL_STEPS)
     if args.smoke:
-      self.episodes, self.steps, self.plan_episodes, self.plan_steps = 4, 8, 2, 8
+      self.episodes, self.steps, self.plan_episodes, self.plan_steps = 4, 8, 2, 4
       self.candidates = [1, 3]
     self.model_dir = os.path.join(self.workdir, "model")
     self.classifier_dir = os.path.join(self.workdir, "classifier")
