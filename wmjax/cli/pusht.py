@@ -20,20 +20,26 @@ def _load(args, extra):
                     overrides=common.overrides(extra))
 
 
+def _steps(args, model) -> int:
+  """``--steps``, or the actions of :data:`DEFAULT_CONTROL_STEPS` control steps."""
+  from wmjax.tasks.pusht.evaluate import actions_for
+  return args.steps or actions_for(model.config, DEFAULT_CONTROL_STEPS)
+
+
 def eval_policy(args, extra) -> int:
   """Evaluate policies in a Push-T world model and, for ground truth, in the gym-pusht simulator
   from the same initial states: Monte Carlo values (mean ± stderr), Pearson / Spearman / Kendall,
   rank agreement, MMRV, value gap; writes policy_eval.json, policy_eval.md and one video per
   policy (simulator | world model | difference)."""
   from wmjax.eval.rewards import reward_from_spec
-  from wmjax.tasks.pusht.evaluate import (actions_for, evaluate_policies, policies_from_specs,
-                                          policy_chunk, policy_report)
+  from wmjax.tasks.pusht.evaluate import (evaluate_policies, policies_from_specs, policy_chunk,
+                                          policy_report)
   model = _load(args, extra)
   policies = policies_from_specs(args.policy, policy_chunk(model.config))
   rewards = {spec: reward_from_spec(spec) for spec in args.reward or ["coverage"]}
   out = args.out or f"{args.workdir}/policy_eval"
-  steps = args.steps or actions_for(model.config, DEFAULT_CONTROL_STEPS)
-  result = evaluate_policies(model, policies, rewards, episodes=args.episodes, steps=steps,
+  result = evaluate_policies(model, policies, rewards, episodes=args.episodes,
+                             steps=_steps(args, model),
                              seed=args.seed, scan=args.scan, out=out, videos=args.videos,
                              video_format=args.video_format)
   print(policy_report(result))
@@ -47,16 +53,14 @@ def plan(args, extra) -> int:
   scored by the value function, and the best one's first actions are executed; final simulator
   coverage for each K."""
   from wmjax.eval.rewards import reward_from_spec
-  from wmjax.tasks.pusht.evaluate import (actions_for, plan_in_simulator, policy_chunk,
-                                          proposal_from_spec)
+  from wmjax.tasks.pusht.evaluate import plan_in_simulator, policy_chunk, proposal_from_spec
   model = _load(args, extra)
   length = args.plan_length or policy_chunk(model.config)
   proposal = proposal_from_spec(args.proposal, length)
   out = args.out or f"{args.workdir}/plan"
   candidates = [int(k) for k in args.candidates.split(",")]
   result = plan_in_simulator(model, proposal, reward_from_spec(args.value), candidates,
-                             episodes=args.episodes, seed=args.seed,
-                             steps=args.steps or actions_for(model.config, DEFAULT_CONTROL_STEPS),
+                             episodes=args.episodes, steps=_steps(args, model), seed=args.seed,
                              execute=args.execute or length, lookahead=args.lookahead, out=out)
   print(result["table"])
   print(f"wrote {out}/plan.json and plan.md")
