@@ -5,6 +5,7 @@ Tests run on 8 simulated CPU devices so that sharding is exercised.
 
 import fcntl
 import functools
+import importlib.util
 import os
 import shutil
 import tempfile
@@ -152,6 +153,39 @@ def data_dir(tmp_path_factory):
   once per run, read-only for the tests."""
   return built_once(tmp_path_factory, "gridworld-data",
                     lambda path: gridworld.prepare(str(path), GRIDWORLD_DATA))
+
+
+def pusht_experiment_script():
+  """``experiments/pusht/run.py`` as a module."""
+  spec = importlib.util.spec_from_file_location("pusht_run", ROOT / "experiments/pusht/run.py")
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  return module
+
+
+# experiments/pusht/run.py --smoke shrunk further: 16x16 frames, 6 + 2 short episodes, 2 steps
+PUSHT_EXPERIMENT_TINY = [
+    "--smoke", "--video_format", "gif", "--success_coverage", "0.1",
+    "--config.data.pusht.image_size=16", "--config.frame_shape=(16,16,3)",
+    "--config.data.pusht.episode_length=10", "--config.data.pusht.train_episodes=6",
+    "--config.data.pusht.test_episodes=2", "--config.data.pusht.batch=6",
+    "--config.train.num_steps=2", "--config.optim.total_steps=2", "--config.optim.warmup_steps=1",
+    "--config.train.checkpoint_every=2", "--config.train.eval_every=0",
+    "--config.sampling.num_steps=2"]
+
+
+@pytest.fixture(scope="session")
+def pusht_experiment(tmp_path_factory) -> Path:
+  """The workdir of ``experiments/pusht/run.py``'s first stages at ``PUSHT_EXPERIMENT_TINY``: its
+  data, success classifier and a tiny world model (``model/``), once per test run for the tests
+  that need a trained Push-T model. Read-only: a test copies what it writes into."""
+  stages = ["--stage", "data", "--stage", "classifier", "--stage", "train"]
+
+  def build(path):
+    args = ["--workdir", str(path)] + PUSHT_EXPERIMENT_TINY + stages
+    assert pusht_experiment_script().main(args) == 0
+
+  return built_once(tmp_path_factory, "pusht-experiment", build)
 
 
 def gridworld_overrides(data_dir, **extra) -> list[str]:

@@ -1,6 +1,7 @@
 """The notebooks run top to bottom (tiny settings), and are stored without outputs."""
 
 import pathlib
+import shutil
 
 import nbformat
 import pytest
@@ -24,7 +25,8 @@ def test_notebook_is_stored_without_outputs(path):
 
 
 # the notebooks on the gridworld share one model: the first to run trains it (its training cell),
-# the next loads it (its loading path), as after the README quickstart
+# the next loads it (its loading path), as after the README quickstart; the Push-T notebook loads
+# the model of the suite's Push-T experiment (conftest.py), as after experiments/pusht/run.py
 GRIDWORLD_NOTEBOOKS = ("keyboard_control", "quickstart")
 
 
@@ -36,9 +38,13 @@ def gridworld_workdir(tmp_path_factory):
 @pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
-def test_notebook_runs(path, tmp_path, monkeypatch, gridworld_workdir):
+def test_notebook_runs(path, tmp_path, monkeypatch, gridworld_workdir, request):
   monkeypatch.setenv("WMJAX_NOTEBOOK_SMOKE", "1")
-  workdir = gridworld_workdir if path.stem in GRIDWORLD_NOTEBOOKS else tmp_path / "model"
+  if path.stem in GRIDWORLD_NOTEBOOKS:
+    workdir = gridworld_workdir
+  else:  # the notebook writes its evaluation beside the model: a copy
+    experiment = request.getfixturevalue("pusht_experiment")
+    workdir = shutil.copytree(experiment / "model", tmp_path / "model")
   monkeypatch.setenv("WMJAX_NOTEBOOK_WORKDIR", str(workdir))
   notebook = nbformat.read(path, as_version=4)
   NotebookClient(notebook, timeout=900, kernel_name="python3",

@@ -41,7 +41,9 @@ def test_tiny_model_overfits_a_moving_square():
                        "sampling.num_steps=20")
   wm = WorldModel.from_config(config)
   clip, actions = moving_square_clip()
-  batch, batch_actions = jnp.tile(clip, (8, 1, 1, 1, 1)), jnp.tile(actions, (8, 1, 1))
+  # a batch of 4 copies (4 noise draws a step): 200 steps of 8 copies took twice as long and fit
+  # no better (loss / 36 against / 25, rollout at 0.08 against 0.15 of copying the first frame)
+  batch, batch_actions = jnp.tile(clip, (4, 1, 1, 1, 1)), jnp.tile(actions, (4, 1, 1))
   params = nn.unbox(wm.init(jax.random.key(0), clip.shape[2:], frames=clip.shape[1]))
   optimizer = optax.adam(3e-3)
 

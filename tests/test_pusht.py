@@ -2,9 +2,9 @@
 functions, and `wmjax eval-policy` / `wmjax plan` end to end on a tiny model."""
 
 import dataclasses
-import importlib.util
 import json
 import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import ROOT
+from conftest import PUSHT_EXPERIMENT_TINY, ROOT, pusht_experiment_script
 from wmjax import cli
 from wmjax.config import load_config
 from wmjax.data import synthetic
@@ -368,32 +368,12 @@ def test_success_classifier_learns_and_round_trips(tmp_path):
     rewards.train_success_classifier(frames, np.zeros(48, bool))
 
 
-def _experiment_script():
-  spec = importlib.util.spec_from_file_location("pusht_run", ROOT / "experiments/pusht/run.py")
-  module = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(module)
-  return module
-
-
-# experiments/pusht/run.py --smoke shrunk further: 16x16 frames, 6 + 2 short episodes, 2 steps
-EXPERIMENT_TINY = [
-    "--smoke", "--video_format", "gif", "--success_coverage", "0.1",
-    "--config.data.pusht.image_size=16", "--config.frame_shape=(16,16,3)",
-    "--config.data.pusht.episode_length=10", "--config.data.pusht.train_episodes=6",
-    "--config.data.pusht.test_episodes=2", "--config.data.pusht.batch=6",
-    "--config.train.num_steps=2", "--config.optim.total_steps=2", "--config.optim.warmup_steps=1",
-    "--config.train.checkpoint_every=2", "--config.train.eval_every=0",
-    "--config.sampling.num_steps=2"]
-
-
 @pytest.fixture(scope="module")
-def experiment(tmp_path_factory):
-  """(run.py's main, its arguments): the data, success classifier and a tiny world model made by
-  the experiment script's first stages."""
-  run = _experiment_script().main
-  args = ["--workdir", str(tmp_path_factory.mktemp("pusht"))] + EXPERIMENT_TINY
-  assert run(args + ["--stage", "data", "--stage", "classifier", "--stage", "train"]) == 0
-  return run, args
+def experiment(pusht_experiment, tmp_path_factory):
+  """(run.py's main, its arguments) on a copy of the suite's Push-T experiment (conftest.py): the
+  data, success classifier and tiny world model of the experiment script's first stages."""
+  root = shutil.copytree(pusht_experiment, tmp_path_factory.mktemp("pusht") / "run")
+  return pusht_experiment_script().main, ["--workdir", str(root)] + PUSHT_EXPERIMENT_TINY
 
 
 def _check_summary(result: dict, plan: dict) -> None:
@@ -497,7 +477,7 @@ def test_experiment_script_runs_its_stages_resumably(experiment, capsys):
 def test_h100_profile_trains_one_step(experiment, tmp_path):
   """The h100 profile (bfloat16, the attention the platform offers) at tiny widths, one step on
   the experiment's data."""
-  data = [a for a in EXPERIMENT_TINY if a.startswith(("--config.data.pusht", "--config.frame"))]
+  data = [a for a in PUSHT_EXPERIMENT_TINY if a.startswith(("--config.data.pusht", "--config.frame"))]
   tiny = {"data.data_dir": os.path.join(experiment[1][1], "data"), "data.num_workers": 0,
           "model.depth": 2, "model.hidden_size": 32, "model.num_heads": 2, "batch_size": 8,
           "train.num_steps": 1, "train.eval_every": 0}
