@@ -74,10 +74,13 @@ TRAINED_ELSEWHERE = {
 
 @pytest.mark.parametrize("recipe", RECIPES)
 def test_recipe_trains_one_step_and_rolls_out(recipe, builders, tmp_path):
-  config = _config(recipe, builders)
+  # wpe.py evaluates in the training loop; bridge.py through `evaluate_checkpoint` (below) only
+  config = _config(recipe, builders, **({"train.eval_every": 0} if recipe == "bridge.py" else {}))
   _, result = train(config, str(tmp_path))
-  assert result["step"] == 1 and np.isfinite(result["val_loss"])
-  assert np.isfinite(result["rollout_psnr"]) and (tmp_path / "rollout.gif").exists()
+  assert result["step"] == 1
+  if recipe == "wpe.py":
+    assert np.isfinite(result["val_loss"]) and np.isfinite(result["rollout_psnr"])
+    assert (tmp_path / "rollout.gif").exists()
   model = load_model(str(tmp_path))
   image_shape = tuple(config.data.resolution) + (3,)
   assert model.image_shape == image_shape and config.codec.random_vae
