@@ -196,32 +196,3 @@ def test_kv_cache_rollout_equals_the_uncached_rollout(config, overrides, c, h):
                              rtol=1e-4, atol=1e-4)
   np.testing.assert_allclose(_closed_loop(cached, params, context, actions, rng, h), want,
                              rtol=1e-4, atol=1e-4)
-
-
-@pytest.mark.parametrize("kv_cache", [False, True])
-def test_residual_model_outputs_the_change_from_the_last_context_frame(kv_cache):
-  """diffusion.residual: the sampler's x0 is the last clean context frame plus the network's
-  output, with or without the KV cache; a network that outputs nothing copies the last frame."""
-  overrides = ("sampling.num_steps=2", f"sampling.kv_cache={kv_cache}")
-  plain, params = tiny_world_model("pusht.py", *overrides, frame_shape=(8, 8, 3))
-  residual, _ = tiny_world_model("pusht.py", *overrides, "diffusion.residual=True",
-                                 frame_shape=(8, 8, 3))
-  context, actions = _inputs(plain, 2, 2, 1, channels=3)
-  x = jax.random.normal(jax.random.key(3), (2, 1, 8, 8, 3))
-  levels = jnp.full((2, 1), 400)
-  mask = jnp.ones((2, 2), bool)
-  window_actions = jnp.concatenate([jnp.zeros_like(actions[:, :1]), actions], axis=1)
-  outputs = [wm.new_frame_denoiser(params, context, window_actions, mask)(x, levels)
-             for wm in (plain, residual)]
-  np.testing.assert_allclose(outputs[1] - outputs[0],
-                             jnp.broadcast_to(context[:, -1:], x.shape), atol=1e-5)
-  silent = jax.tree.map(jnp.zeros_like, params)  # the zero-initialised output layer, everywhere
-  frames = rollout(residual, silent, context, actions, jax.random.key(0), horizon=1)
-  np.testing.assert_allclose(frames[:, -1], np.clip(context[:, -1], -1, 1), atol=1e-5)
-
-
-def test_residual_needs_x0_prediction_and_clean_context():
-  with pytest.raises(ValueError, match="residual=True needs an x0-predicting process"):
-    tiny_world_model("pusht.py", "diffusion.residual=True", "diffusion.prediction='v'")
-  with pytest.raises(ValueError, match="residual=True needs diffusion.regime='irasim'"):
-    tiny_world_model("pusht.py", "diffusion.residual=True", "diffusion.regime='per_frame'")

@@ -146,17 +146,3 @@ def test_gradient_accumulation_equals_the_whole_batch():
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
   with pytest.raises(ValueError, match=r"not divisible by the data-parallel size 2 x 4 micro"):
     trainer.step(accumulated, *_batch(0, batch=4))
-
-
-def test_residual_training_learns_the_change_from_the_last_context_frame():
-  """diffusion.residual: a fresh network (zero output layer) is copy-last-frame, so on videos
-  whose frames do not change its first loss is zero; without it the loss is the frames' MSE."""
-  frames, actions = _batch(frames=3)
-  still = jnp.broadcast_to(frames[:, :1], frames.shape)
-  losses = {}
-  for residual in (False, True):
-    config = tiny_config("pusht.py", "model.action_dim=4", f"diffusion.residual={residual}")
-    trainer = ShardedTrainer(WorldModel.from_config(config), config,
-                             make_mesh((1, 1, 1), jax.devices()[:1]), (8, 8, 3), 3)
-    losses[residual] = float(trainer.step(trainer.init(jax.random.key(0)), still, actions)[1]["loss"])
-  assert losses[True] < 1e-10 < 0.01 < losses[False]

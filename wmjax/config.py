@@ -152,9 +152,6 @@ class DiffusionConfig:
   # objects that an unweighted MSE barely sees
   object_weight: float = 0.0
   object_dilation: int = 0
-  # True: x0 is the last context frame plus the network output, which learns the change
-  # (wmjax.diffusion.residual_denoiser); needs prediction 'x0' and regime 'irasim'
-  residual: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

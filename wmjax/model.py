@@ -35,12 +35,8 @@ class WorldModel:
   network: STDiT
   process: objectives.Process
   sampler: SamplerConfig
-  residual: bool = False  # the network outputs the change from the last context frame
 
   def __post_init__(self):
-    if self.residual and self.process.prediction != "x0":
-      raise ValueError(f"diffusion.residual=True needs an x0-predicting process (prediction "
-                       f"'x0' or kind 'regression'), got prediction {self.process.prediction!r}")
     if self.sampler.kv_cache and not self.network.causal_temporal:
       raise ValueError("sampling.kv_cache=True needs model.causal_temporal=True: with "
                        "bidirectional temporal attention the context frames attend to the new "
@@ -55,10 +51,7 @@ class WorldModel:
     if sampler.sampler not in process.samplers:
       raise ValueError(f"sampling.sampler={sampler.sampler!r} does not fit diffusion.kind="
                        f"{d.kind!r}; expected one of {process.samplers}")
-    if d.residual and d.regime != "irasim":
-      raise ValueError(f"diffusion.residual=True needs diffusion.regime='irasim' (clean context "
-                       f"frames, the last of which the change is added to), got {d.regime!r}")
-    return cls(STDiT(**config.model.to_dict()), process, sampler, d.residual)
+    return cls(STDiT(**config.model.to_dict()), process, sampler)
 
   def init(self, rng: jax.Array, frame_shape: tuple[int, int, int], frames: int | None = None
            ) -> Params:
@@ -110,13 +103,7 @@ class WorldModel:
     """What the sampler calls at every step: ``(x [B, h, ...], levels [B, h]) -> out`` for the
     ``h`` frames after the clean ``context [B, c, ...]``, under the window's ``actions
     [B, c+h-1, A]`` and ``action_mask [B, c+h-1]``. With ``sampler.kv_cache`` the context goes
-    through the network once, here; otherwise every step runs the whole window. With
-    ``residual`` the last context frame is added to the network's output."""
-    denoise = self._new_frame_network(params, context, actions, action_mask)
-    return objectives.residual_denoiser(denoise, context) if self.residual else denoise
-
-  def _new_frame_network(self, params: Params, context: jax.Array, actions: jax.Array,
-                         action_mask: jax.Array) -> DenoiseFn:
+    through the network once, here; otherwise every step runs the whole window."""
     context_in, context_levels = context_inputs(self.process, self.sampler, context)
     if not self.sampler.kv_cache:
       return window_denoiser(lambda x, levels: self.denoise(params, x, levels, actions, action_mask),

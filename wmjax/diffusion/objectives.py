@@ -339,21 +339,6 @@ def training_noise(process: Process, rng: jax.Array, shape: tuple[int, ...],
   return levels, mask, jax.random.normal(noise_rng, shape, jnp.float32)
 
 
-def residual_denoiser(denoise_fn: Callable[[jax.Array, jax.Array], jax.Array],
-                      context: jax.Array) -> Callable[[jax.Array, jax.Array], jax.Array]:
-  """``denoise_fn`` with the last clean context frame of ``context [B, c, ...]`` added to its
-  output for every frame: a network trained through it predicts the *change* from that frame
-  (``diffusion.residual``; x0 prediction only), so what does not move is copied unless the
-  network moves it, and an untrained network is copy-last-frame (the residual video diffusion
-  of Yang, Srivastava and Mandt, 2022, with the last frame as the deterministic predictor)."""
-  anchor = context[:, -1:]
-
-  def denoise(x, levels):
-    return denoise_fn(x, levels) + anchor.astype(x.dtype)
-
-  return denoise
-
-
 # A value shows an object when it differs from its frame's median (the background) by more than
 # this in some channel (model units: 0.05 is about 6 of 255 grey levels of a pixel codec's [-1, 1]).
 OBJECT_THRESHOLD = 0.05

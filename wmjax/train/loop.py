@@ -45,7 +45,7 @@ from wmjax import parallel
 from wmjax.codecs import PixelCodec
 from wmjax.config import complete_config
 from wmjax.data.pipeline import training_pipeline
-from wmjax.diffusion import LevelSampling, diffusion_loss, residual_denoiser
+from wmjax.diffusion import LevelSampling, diffusion_loss
 from wmjax.errors import CheckpointError, RunError
 from wmjax.eval.rollouts import run_rollouts
 from wmjax.eval.trajectories import Trajectories
@@ -78,8 +78,6 @@ def _loss(world_model: WorldModel, params: Any, frames: jax.Array, actions: jax.
           ) -> jax.Array:
   def denoise(x, levels):
     return world_model.network.apply(params, x, world_model.process.model_time(levels), actions)
-  if world_model.residual:
-    denoise = residual_denoiser(denoise, frames[:, :num_context])
   return diffusion_loss(denoise, world_model.process, frames, rng, regime, num_context,
                         level_sampling)[0]
 

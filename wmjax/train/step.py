@@ -21,7 +21,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from wmjax import parallel
-from wmjax.diffusion import LevelSampling, masked_loss_sum, residual_denoiser, training_noise
+from wmjax.diffusion import LevelSampling, masked_loss_sum, training_noise
 from wmjax.model import WorldModel
 from wmjax.nn import attention
 from wmjax.parallel import abstract_with_shardings
@@ -104,8 +104,6 @@ def make_train_step(world_model: WorldModel, config: ml_collections.ConfigDict,
       x0, a, lv, m, nz, drop = batch
       denoise = lambda x, lvl: net.apply({"params": params}, x, process.model_time(lvl), a,
                                          drop_actions=drop)
-      if world_model.residual:
-        denoise = residual_denoiser(denoise, x0[:, :diffusion.num_context])
       return masked_loss_sum(denoise, process, x0, lv, nz, m, diffusion.object_weight,
                              diffusion.object_dilation)[0] / normalizer
 
