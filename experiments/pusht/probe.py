@@ -67,14 +67,14 @@ def reference_windows(model, data_dir: str, frames: int, limit=None):
 
 
 def probe(workdir: str, step: int, data_dir: str, *, batch_size: int = 32, limit=None,
-          picture: str | None = None, overrides: tuple[str, ...] = ()) -> dict:
+          picture: str | None = None, overrides: tuple[str, ...] = (), params: str = "ema") -> dict:
   import jax
 
   from wmjax.eval.rollouts import run_rollouts
   from wmjax.model import load_model
   from wmjax.registry import frame_metrics_of
 
-  model = load_model(workdir, step=step, overrides=overrides)
+  model = load_model(workdir, step=step, overrides=overrides, params=params)
   builder_dir, trajectories = reference_windows(model, data_dir, CONTEXT + GENERATED, limit)
   outcome = run_rollouts(model, trajectories, first=0, context=CONTEXT, horizon=1,
                          rng=jax.random.key(0), batch_size=batch_size,
@@ -88,7 +88,7 @@ def probe(workdir: str, step: int, data_dir: str, *, batch_size: int = 32, limit
   still = (shift < 0.5) & (turn < 0.5)
   groups = {"all": np.ones(len(still), bool), "still": still, "moved": ~still}
   result = {"workdir": os.path.abspath(workdir), "step": int(model.step),
-            "overrides": list(overrides), "reference_data": builder_dir, "windows": int(len(still)),
+            "overrides": list(overrides), "params": params, "reference_data": builder_dir, "windows": int(len(still)),
             "still_windows": int(still.sum()), "context": CONTEXT, "generated": GENERATED,
             "episode": trajectories.episode.tolist(), "start": trajectories.start.tolist(),
             "still": still.tolist(), "per_window": {}}
@@ -168,6 +168,8 @@ def main(argv=None) -> int:
   parser.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
                       help="an inference setting of the model's config (load_model's overrides), "
                            "e.g. sampling.num_steps=16; any number")
+  parser.add_argument("--params", choices=("ema", "raw"), default="ema",
+                      help="the checkpoint's EMA parameters (default) or its raw ones")
   parser.add_argument("--by_noise_level", action="store_true",
                       help="instead: the agent from one noisy frame at each noise level "
                            "(by_noise_level), 64 windows of 3 frames")
@@ -182,7 +184,7 @@ def main(argv=None) -> int:
       continue
     r = probe(args.workdir, step, args.data_dir, limit=args.limit,
               picture=args.picture and args.picture.format(step=step),
-              overrides=tuple(args.override))
+              overrides=tuple(args.override), params=args.params)
     results.append(r)
 
     def cell(key):
