@@ -14,7 +14,8 @@
 #
 # What the backward pass keeps, one knob at a time (parts that may be named together in one call):
 #   benchmarks/gpu_suite.sh settings-xl-train  # XL/2's train step at batch 16 for each of
-#                                              # TRAIN_SETTINGS (~1 min each; a setting is
+#                                              # TRAIN_SETTINGS (over 2 min each with the
+#                                              # compile on an H200; a setting is
 #                                              # model fields, or section.field=value)
 #   benchmarks/gpu_suite.sh settings-wpe-train # the same for WPE-600M
 # A setting that does not fit the card is reported and the next one runs.

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The Push-T `h100` profile end to end on a lent GPU machine (no package index there), from a
-# fresh clone: data and success classifier on the host CPUs, then per training seed the world
-# model, the policy evaluation and planning on the GPU (held-out start states), each seed in its
-# own workdir W/seedS sharing seed 0's data and classifier. Carry .whl (device_wheels.sh):
+# fresh clone: data and success classifier on the host CPUs (skipped where W/seedS/data and
+# classifier are carried, prepared), then for all training seeds at once, on the one GPU, the
+# world model, the policy evaluation and planning (held-out start states), each seed in its own
+# workdir W/seedS sharing the first seed's data and classifier. Carry .whl (device_wheels.sh):
 #   experiments/pusht/h100_device.sh W MINUTES [SEEDS] [overrides]
 # e.g. `experiments/pusht/h100_device.sh /tmp/pusht 9 "0 1"`. MINUTES bounds each call of
 # run.py (the stages resume where a call stopped: run the same command again to continue).
@@ -24,14 +25,18 @@ run() {  # SEED STAGE... : run.py on seed SEED's workdir
 overrides=("$@")
 first=${seeds%% *}
 JAX_PLATFORMS=cpu run "$first" --stage data --stage classifier 2>&1 | tail -3
-for seed in $seeds; do
-  mkdir -p "$W/seed$seed"
+nseeds=$(wc -w <<< "$seeds")
+for seed in $seeds; do  # the seeds train and evaluate side by side: a 32.5M model leaves most of
+  mkdir -p "$W/seed$seed"  # the GPU idle, and the closed-loop stages wait on the simulator
   for shared in data classifier; do  # one dataset and classifier for every seed
     [[ -e $W/seed$seed/$shared ]] || ln -s "$W/seed$first/$shared" "$W/seed$seed/$shared"
   done
-  run "$seed" --stage train --stage policy --stage plan --stage summary 2>&1 \
-      | tee "$W/seed$seed.log" | grep -v "^  " | grep -E "^## stage|pearson|held_out|block_iou|Error|stopped" | tail -20
-  echo "seed $seed done at $(( $(date +%s) - start )) s"
+  ( XLA_PYTHON_CLIENT_MEM_FRACTION=$(python3 -c "print(round(0.9 / $nseeds, 3))") \
+      run "$seed" --stage train --stage policy --stage plan --stage summary > "$W/seed$seed.log" 2>&1
+    echo "seed $seed: exit $? at $(( $(date +%s) - start )) s"
+    grep -v "^  " "$W/seed$seed.log" \
+      | grep -E "^## stage|pearson|held_out|block_iou|Error|stopped" | tail -20 ) &
 done
+wait
 tar cf "${OUT:-/tmp}/pusht.tar" -C "$W" --exclude='*.gif' --exclude='checkpoints' \
     --exclude='data' --exclude='classifier' .
