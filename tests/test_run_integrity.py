@@ -298,7 +298,8 @@ def test_batches_do_not_depend_on_the_number_of_workers(data_dir):
     it.close()
     return out
 
-  sequential, parallel_workers, later = batches(0), batches(2), batches(2, start=3, n=2)
+  # start with worker processes: test_resume_with_more_workers_logs_each_step_once_and_cleans_up
+  sequential, parallel_workers, later = batches(0), batches(2), batches(0, start=3, n=2)
   for a, b in zip(sequential, parallel_workers):
     np.testing.assert_array_equal(a["frames"], b["frames"])
   for a, b in zip(sequential[3:], later):
