@@ -59,12 +59,37 @@ def test_auto_fit_takes_micro_batches_under_a_budget_and_keeps_the_loss():
     losses.append(float(metrics["loss"]))
   np.testing.assert_allclose(losses[1], losses[0], rtol=1e-5)
 
-  refused = tiny_config("gridworld.py", *SMALL, f"train.memory_budget_gib={budget}",
-                        "train.auto_fit=False")
+
+def _sized_measure(gib_of):
+  """A stand-in for the compiled step's measure: ``gib_of(remat, grad_accum)`` GiB per device,
+  fitting the budget or not, and the settings it was asked for."""
+  asked = []
+
+  def measure(remat, grad_accum, budget_bytes):
+    asked.append((remat, grad_accum))
+    total = gib_of(remat, grad_accum)
+    return (remat, grad_accum), {
+        "what": "train", "target": "cpu:2", "batch": 16, "remat": remat, "grad_accum": grad_accum,
+        "total_gib": total, "arguments_gib": 0.0, "temp_gib": total,
+        "limit_gib": budget_bytes / fit.GIB, "fits": total * fit.GIB <= budget_bytes}
+  return measure, asked
+
+
+@pytest.mark.unit
+def test_a_step_that_does_not_fit_stops_with_the_setting_to_change():
+  """Without train.auto_fit the config's own setting is the only one tried, and the error says
+  what to set; when no setting of the ladder fits, the error names the smallest tried."""
+  target = fit.parse_target("cpu:2")
+  config = tiny_config("gridworld.py", *SMALL, "train.memory_budget_gib=1.0", "train.auto_fit=False")
+  measure, asked = _sized_measure(lambda remat, accum: 2.0)
   with pytest.raises(fit.DoesNotFitError, match=r"does not fit.*train.auto_fit=True"):
-    fit_to_memory(build_context(refused, local), log=lambda line: None)
-  with pytest.raises(fit.DoesNotFitError, match=r"smallest tried, remat=full grad_accum=\d+"):
-    fit_context(build_context(config, fit.parse_target("cpu:2")), budget_bytes=1024, batch=2)
+    fit.fit_for_training(config, target, measure, 2, log=lambda line: None)
+  assert asked == [("full", 1)]
+  measure, asked = _sized_measure(lambda remat, accum: 2.0 + 1.0 / accum)
+  with pytest.raises(fit.DoesNotFitError, match=r"no setting fits 1 GiB per device on cpu:2: the "
+                     r"smallest tried, remat=full grad_accum=(\d+), needs 2\.\d+ GiB") as error:
+    fit.fit_step(config, target, measure, 2, fit.GIB, log=lambda line: None)
+  assert len(asked) > 1 and f"grad_accum={max(a for _, a in asked)}," in str(error.value)
 
 
 REFUSAL = ("RESOURCE_EXHAUSTED: Ran out of memory on HBM, the total memory required for HLO "

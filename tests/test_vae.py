@@ -1,6 +1,7 @@
 """The Flax AutoencoderKL against diffusers' PyTorch implementation (random weights, SD/SDXL and
 SD3 layouts), weight-file errors, and the codecs."""
 
+import dataclasses
 import json
 import shutil
 import typing
@@ -129,7 +130,8 @@ def test_pixel_and_patch_codecs():
 @pytest.mark.parametrize("layout", sorted(LAYOUTS))
 def test_a_random_vae_codec_reads_no_files(layout):
   """codec.random_vae: the layout's latent channels, scaling and shift, the same weights on
-  every build, and the path left unread."""
+  every build (one module and parameters per process: equal codecs, one compiled encode), and
+  the path left unread."""
   choices = typing.get_args(typing.get_type_hints(CodecConfig)["random_vae"])
   assert set(choices) == {""} | set(LAYOUTS)  # the schema's choices are the layouts
   config = codec_config(kind="vae", random_vae=layout, random_vae_widths=(8, 8, 16),
@@ -141,6 +143,9 @@ def test_a_random_vae_codec_reads_no_files(layout):
       LAYOUTS[layout]["scaling_factor"], LAYOUTS[layout].get("shift_factor", 0.0))
   for ours, theirs in zip(jax.tree.leaves(codec.params), jax.tree.leaves(again.params)):
     np.testing.assert_array_equal(ours, theirs)
+  assert codec == again and hash(codec) == hash(again)
+  copied = dataclasses.replace(codec, params=jax.tree.map(jnp.copy, codec.params))
+  assert codec != copied and codec != dataclasses.replace(codec, chunk=codec.chunk + 1)
   frames = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (2, 3, 32, 24, 3)), jnp.float32)
   latents = codec.encode(frames)
   assert latents.shape == (2, 3, 8, 6, channels) and float(jnp.std(latents)) > 0

@@ -97,7 +97,8 @@ class PatchCodec:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class VAECodec:
-  """A diffusers AutoencoderKL (see the module doc); hashable by identity."""
+  """A diffusers AutoencoderKL (see the module doc). Two codecs of the same module and parameter
+  objects with the same settings are equal, so that they share one compiled encode and decode."""
 
   module: AutoencoderKL
   params: Any
@@ -105,6 +106,16 @@ class VAECodec:
   shift_factor: float = 0.0
   sample: bool = False
   chunk: int = 16
+
+  def _identity(self) -> tuple:
+    return (id(self.module), id(self.params), self.scaling_factor, self.shift_factor, self.sample,
+            self.chunk)
+
+  def __eq__(self, other):
+    return isinstance(other, VAECodec) and self._identity() == other._identity()
+
+  def __hash__(self):
+    return hash(self._identity())
 
   def latent_shape(self, frame_shape):
     h, w, _ = frame_shape
@@ -162,10 +173,18 @@ def _vae_decode(codec: VAECodec, params, latents: jax.Array) -> jax.Array:
   return jnp.clip(_over_frames(one, z, codec.chunk), -1.0, 1.0)
 
 
+@functools.lru_cache(maxsize=4)
+def _random_vae(layout: str, widths: tuple[int, ...], dtype) -> tuple[AutoencoderKL, Any]:
+  """:func:`wmjax.nn.vae.random_vae`, made once per process for its arguments: every codec of a
+  random-VAE config (training, evaluation, a loaded model) holds the same module and parameters,
+  so they compile one encode and one decode between them."""
+  return random_vae(layout, widths, dtype)
+
+
 def _vae(config: ml_collections.ConfigDict) -> tuple[AutoencoderKL, Any]:
   """The VAE ``config.codec`` names: random (``random_vae``) or read from ``path``."""
   if config.random_vae:
-    return random_vae(config.random_vae, config.random_vae_widths, jnp.dtype(config.dtype))
+    return _random_vae(config.random_vae, tuple(config.random_vae_widths), jnp.dtype(config.dtype))
   if not config.path or not os.path.exists(os.path.expanduser(config.path)):
     raise ValueError(f"codec.kind='vae' needs codec.path: a diffusers AutoencoderKL folder "
                      f"(config.json + diffusion_pytorch_model.safetensors), got "
