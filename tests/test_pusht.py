@@ -468,6 +468,9 @@ def test_experiment_script_runs_its_stages_resumably(experiment, capsys):
   timing = ("minutes", "stage_minutes")
   assert {k: v for k, v in again.items() if k not in timing} == {
       k: v for k, v in summary.items() if k not in timing}
+  (root / "summary.json").unlink()  # past the deadline the milliseconds' summary still runs
+  assert run(args + ["--minutes", "0", "--stage", "summary"]) == 0
+  assert (root / "summary.json").exists()
   with pytest.raises(SystemExit):
     run(args + ["--config.train.num_stepz=3"])
 
