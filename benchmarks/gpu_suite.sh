@@ -83,7 +83,11 @@ rollout() {
 # attention outputs (dots_attention) and every matmul's input (dots_elementwise) to everything
 # (none: 131 GiB, an H200 only), and no remat over two micro-batches of 8. The fused Pallas kernels
 # measured here on 2026-11-26 were slower than XLA and were removed (benchmarks/RESULTS.md).
-TRAIN_SETTINGS=(${TRAIN_SETTINGS:+"$TRAIN_SETTINGS"})
+# TRAIN_SETTINGS="remat=dots scan_layers=False;remat=none scan_layers=False" runs those settings
+# instead (';' between settings). Each runs under SETTING_TIMEOUT seconds (default 300: on an
+# H200 an unrolled XL/2 step did not compile within 110 s, 2026-11-27), so that one slow setting
+# cannot take a whole 10-minute device call; five settings need two calls.
+IFS=';' read -r -a TRAIN_SETTINGS <<< "${TRAIN_SETTINGS:-}"
 [[ ${#TRAIN_SETTINGS[@]} -gt 0 ]] || TRAIN_SETTINGS=(
     "remat=dots scan_layers=False" "remat=dots_attention scan_layers=False"
     "remat=dots_elementwise scan_layers=False" "remat=none scan_layers=False optim.grad_accum=2"
@@ -103,7 +107,8 @@ train_runs() {  # NAME CONFIG: the train step of each TRAIN_SETTINGS; a failing 
   for setting in "${TRAIN_SETTINGS[@]}"; do
     setting_flags "$setting"
     echo "== $name train $setting"
-    $py benchmarks/train_step.py --config "$spec" "${fast[@]}" "${flags[@]}" --batch 16 \
+    timeout "${SETTING_TIMEOUT:-300}" \
+      $py benchmarks/train_step.py --config "$spec" "${fast[@]}" "${flags[@]}" --batch 16 \
         --steps 5 --out "$out/settings-train-$name$tag-$platform.json" \
         > "$traces-$name$tag-train.log" 2>&1 \
       && grep -E '"(step_ms|mfu)"' "$out/settings-train-$name$tag-$platform.json" \
