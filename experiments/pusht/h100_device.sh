@@ -7,7 +7,9 @@
 #   experiments/pusht/h100_device.sh W MINUTES [SEEDS] [overrides]
 # e.g. `experiments/pusht/h100_device.sh /tmp/pusht 9 "0 1"`. MINUTES bounds each call of
 # run.py (the stages resume where a call stopped: run the same command again to continue).
-# Summaries, logs, policy_eval/ and plan/ go to $OUT/pusht.tar.
+# Summaries, logs, policy_eval/ and plan/ go to $OUT/pusht.tar. Measured on one H200 (2026-11-27),
+# data and classifier prepared on the host and carried in W/seed0: `h100_device.sh W 7.3 "0 1"
+# --no-lookahead --candidates 1,10,50` finished both seeds in 7.4 minutes (RESULTS.md beside this).
 set -uo pipefail
 W=$1; minutes=$2; seeds=${3:-0 1}; shift $(( $# < 3 ? $# : 3 ))
 if [[ -z ${NO_WHEELS:-} ]]; then  # NO_WHEELS=1: the packages are installed already
