@@ -489,3 +489,42 @@ def test_h100_profile_trains_one_step(experiment, tmp_path):
   saved = json.loads((tmp_path / "config.json").read_text())
   assert (saved["name"], saved["model"]["dtype"]) == ("pusht-h100", "bfloat16")
   assert json.loads((tmp_path / "metrics.json").read_text()) == {"step": 1}
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_push_task_improves_a_cloned_policy_in_the_world_model_checked_in_gym_pusht(
+    pusht_experiment):
+  """The ``push`` control task of a Push-T world model: held-out start states, the world model's
+  episodes starting from the simulator's context frames and still actions, and one round of
+  improvement in imagination checked in gym-pusht."""
+  from wmjax import registry
+  from wmjax.model import load_model
+  from wmjax.train.improve import ImproveSettings, improve_on_task, world_model_rollout
+  from wmjax.train.policy import clone_policy
+
+  model = load_model(str(pusht_experiment / "model"))
+  task = registry.control_task("push", model.config)
+  c = model.config.rollout.context
+  assert (task.context, task.steps) == (c, 32 // model.config.data.pusht.action_repeat)
+  evaluation = task.start_states(3, "evaluate")
+  learning = task.start_states(4, "plan", exclude=evaluation)
+  assert task.held_out(evaluation) and task.held_out(learning)
+  assert not synthetic.matching(learning, evaluation).any()
+  frames, still = task.frames(evaluation), task.context_actions(evaluation)
+  assert frames.shape == (3, c) + model.image_shape and frames.dtype == np.uint8
+  assert still.shape == (3, c - 1, 2)
+  policy, _ = clone_policy(model, task.controls, steps=2, batch_size=4)
+  key = jax.random.key(0)
+  imagined = world_model_rollout(model, task, evaluation)(policy, key)
+  np.testing.assert_allclose(np.asarray(imagined["frames"])[:, :c], to_model(frames), atol=1e-6)
+  true = task.run(policy, evaluation, key)
+  assert true["frames"].shape == (3, c + task.steps) + model.image_shape
+  assert true["actions"].shape == (3, task.steps, 2)
+  np.testing.assert_array_equal(task.reward(true["frames"]), coverage(true["frames"]))
+  settings = ImproveSettings(rounds=1, rollouts=4, fit_steps=2, batch_size=4, keep=0.5)
+  _, report = improve_on_task(model, policy, task, settings, evaluation_states=3)
+  assert report["held_out"] is True and [r["round"] for r in report["rounds"]] == [0, 1]
+  for record in report["rounds"]:
+    assert 0.0 <= record["true_value"] <= 1.0 and 0.0 <= record["imagined_value"] <= 1.0
+    assert record["gap"] == pytest.approx(record["imagined_value"] - record["true_value"])

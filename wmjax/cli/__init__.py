@@ -23,7 +23,8 @@ the library and printing the result.
 
 ``eval-policy`` and ``plan`` are Push-T's: they check a Push-T world model against the gym-pusht
 simulator. ``clone-policy`` and ``improve`` train a learnable policy on a control task of the
-model's task module (the gridworld's ``reach``) and check it in the task's true environment.
+model's task module (the gridworld's ``reach``, Push-T's ``push``) and check it in the task's true
+environment.
 Config overrides use ``--config.dotted.key=value`` with Python literal values (train, evaluate,
 rollout, eval-policy, plan, info, compile, data encode); an unknown key or flag is an error.
 info, compile and the data commands but encode run JAX on the CPU only.

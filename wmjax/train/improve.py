@@ -142,14 +142,16 @@ def improve(policy: LearnedPolicy, rollout: Rollout, score: Score, settings: Imp
 
 def world_model_rollout(model: LoadedModel, task, states: np.ndarray) -> Rollout:
   """Episodes of ``task.steps`` actions in the world model from ``states`` (the task renders
-  them: ``task.frames(states) -> uint8 [B, c, H, W, 3]``), one jitted scan per call."""
-  frames = task.frames(states)
+  them: ``task.frames(states) -> uint8 [B, c, H, W, 3]``, with the raw actions between those
+  frames ``task.context_actions(states) -> [B, c-1, A]`` or None), one jitted scan per call."""
+  frames, context_actions = task.frames(states), task.context_actions(states)
 
   def rollout(policy: LearnedPolicy, key: jax.Array) -> dict:
     return scan_episodes(model.world_model, model.params, policy, frames, task.steps,
                          jax.random.fold_in(key, 1), key, horizon=model.config.rollout.horizon,
                          action_stats=model.action_stats,
-                         normalization=model.config.data.normalization, codec=model.codec)
+                         normalization=model.config.data.normalization, codec=model.codec,
+                         context_actions=context_actions)
 
   return rollout
 
