@@ -20,7 +20,7 @@ import contextlib
 import dataclasses
 import fcntl
 import os
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import tensorflow_datasets as tfds
@@ -76,6 +76,21 @@ def matching(states, reference, atol: float = 1e-6) -> np.ndarray:
     close = np.abs(states[:, None] - block[None]) <= atol
     found |= close.reshape(close.shape[:2] + (-1,)).all(-1).any(1)
   return found
+
+
+def unmatched_draws(draw: Callable[[int], np.ndarray], count: int, known, exclude=None
+                    ) -> np.ndarray:
+  """``count`` states ``[count, ...]`` from calls of ``draw(n)`` (about ``n`` states each, from a
+  stream of its own), leaving out every state equal to one of ``known [M, ...]`` (a training
+  split's start states) or of ``exclude``: start states held out by construction."""
+  known = np.asarray(known)
+  if exclude is not None:
+    known = np.concatenate([known, np.asarray(exclude, known.dtype)])
+  states = []
+  while len(states) < count:
+    drawn = draw(count)
+    states.extend(drawn[~matching(drawn, known)])
+  return np.stack(states[:count])
 
 
 class SyntheticBuilder(NothingDownloaded, tfds.core.GeneratorBasedBuilder):

@@ -56,14 +56,12 @@ class ReachTask:
     draw ``index``, none a training episode's first frame nor one of ``exclude [M, n, 2]``; the
     squares past the second are placed as the data places them."""
     rng = synthetic.stream(self.world.seed, purpose, index)
-    training = self._training_starts
-    if exclude is not None:
-      training = np.concatenate([training, np.asarray(exclude, training.dtype)])
-    states = []
-    while len(states) < count:
-      centres = first_centres(self.world, rng, 4 * count)
-      states.extend(centres[self.apart(centres) & ~synthetic.matching(centres, training)])
-    return np.stack(states[:count])
+
+    def apart(n):
+      centres = first_centres(self.world, rng, 4 * n)
+      return centres[self.apart(centres)]
+
+    return synthetic.unmatched_draws(apart, count, self._training_starts, exclude)
 
   def apart(self, centres) -> np.ndarray:
     """Whether the two squares of each of ``centres [..., n, 2]`` are at least

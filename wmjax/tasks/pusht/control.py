@@ -67,15 +67,10 @@ class PushTask:
     """``count`` simulator states ``[count, 5]`` of ``purpose`` (``evaluate`` or ``plan``) and
     draw ``index``, none a training episode's start nor one of ``exclude [M, 5]``."""
     rng = synthetic.stream(self.world.seed, purpose, index)
-    known = self._training_starts
-    if exclude is not None:
-      known = np.concatenate([known, np.asarray(exclude, known.dtype)])
-    states = []
-    while len(states) < count:
-      drawn = simulator.random_initial_states(rng, count, max_offset=self.world.max_offset,
-                                              max_angle=self.world.max_angle)
-      states.extend(drawn[~synthetic.matching(drawn, known)])
-    return np.stack(states[:count])
+    return synthetic.unmatched_draws(
+        lambda n: simulator.random_initial_states(rng, n, max_offset=self.world.max_offset,
+                                                  max_angle=self.world.max_angle),
+        count, self._training_starts, exclude)
 
   def held_out(self, states) -> bool:
     """Whether none of ``states [N, 5]`` is a start state of the training split."""
