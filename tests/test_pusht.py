@@ -511,7 +511,7 @@ def test_push_task_improves_a_cloned_policy_in_the_world_model_checked_in_gym_pu
   learning = task.start_states(4, "plan", exclude=evaluation)
   assert task.held_out(evaluation) and task.held_out(learning)
   assert not synthetic.matching(learning, evaluation).any()
-  frames, still = task.frames(evaluation), task.context_actions(evaluation)
+  frames, still = task.start(evaluation)
   assert frames.shape == (3, c) + model.image_shape and frames.dtype == np.uint8
   assert still.shape == (3, c - 1, 2)
   policy, _ = clone_policy(model, task.controls, steps=2, batch_size=4)

@@ -142,9 +142,9 @@ def improve(policy: LearnedPolicy, rollout: Rollout, score: Score, settings: Imp
 
 def world_model_rollout(model: LoadedModel, task, states: np.ndarray) -> Rollout:
   """Episodes of ``task.steps`` actions in the world model from ``states`` (the task renders
-  them: ``task.frames(states) -> uint8 [B, c, H, W, 3]``, with the raw actions between those
-  frames ``task.context_actions(states) -> [B, c-1, A]`` or None), one jitted scan per call."""
-  frames, context_actions = task.frames(states), task.context_actions(states)
+  how they begin: ``task.start(states) -> (uint8 frames [B, c, H, W, 3], the raw actions between
+  them [B, c-1, A] or None)``), one jitted scan per call."""
+  frames, context_actions = task.start(states)
 
   def rollout(policy: LearnedPolicy, key: jax.Array) -> dict:
     return scan_episodes(model.world_model, model.params, policy, frames, task.steps,

@@ -91,10 +91,10 @@ class ReachTask:
     """The first frames of episodes from ``states [B, n, 2]``: uint8 ``[B, 1, S, S, 3]``."""
     return np.asarray(env.render(self.world, np.asarray(states, np.float32)))[:, None]
 
-  def context_actions(self, states) -> None:
-    """No actions before the policy's: an episode starts from one frame."""
-    del states
-    return None
+  def start(self, states) -> tuple[np.ndarray, None]:
+    """How episodes from ``states [B, n, 2]`` begin: their first frames (:meth:`frames`), with no
+    action before the policy's."""
+    return self.frames(states), None
 
   def distance(self, frames) -> np.ndarray:
     """Pixels between the red square in the first frame and the green one in the last of

@@ -50,7 +50,7 @@ class PushTask:
     """The task in the Push-T world a world model's config trained on: its frame size, rollout
     context and the dataset's action repeat."""
     world = PushTConfig.from_dict(config.data.pusht)
-    return cls(world, max(1, CONTROL_STEPS // world.action_repeat), int(config.rollout.context),
+    return cls(world, world.actions_for(CONTROL_STEPS), int(config.rollout.context),
                int(config.frame_shape[0]))
 
   def describe(self) -> dict:
@@ -76,19 +76,13 @@ class PushTask:
     """Whether none of ``states [N, 5]`` is a start state of the training split."""
     return not synthetic.matching(states, self._training_starts).any()
 
-  def _start(self, states) -> tuple[list, list]:
+  def start(self, states) -> tuple[np.ndarray, np.ndarray | None]:
+    """How episodes from ``states [B, 5]`` begin, from one simulator run: the ``context`` first
+    frames, uint8 ``[B, c, S, S, 3]``, and the still actions between them ``[B, c-1, 2]`` (None
+    for one frame)."""
     sim = simulator.PushTSimulator(len(states), self.image_size, self.world.action_repeat)
     frames, actions, _ = sim.start(np.asarray(states), self.context)
-    return frames, actions
-
-  def frames(self, states) -> np.ndarray:
-    """The ``context`` first frames of episodes from ``states [B, 5]``: uint8 ``[B, c, S, S, 3]``."""
-    return np.stack(self._start(states)[0], 1)
-
-  def context_actions(self, states) -> np.ndarray | None:
-    """The still actions between those frames ``[B, c-1, 2]`` (None for one frame)."""
-    actions = self._start(states)[1]
-    return np.stack(actions, 1).astype(np.float32) if actions else None
+    return np.stack(frames, 1), (np.stack(actions, 1).astype(np.float32) if actions else None)
 
   def reward(self, frames, instruction=None) -> np.ndarray:
     """The episodes' returns ``[B]``: the goal's coverage in the last of ``frames [B, T, H, W,

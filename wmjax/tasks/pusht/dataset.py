@@ -82,6 +82,11 @@ class PushTConfig:
       raise ValueError(f"noise levels must be >= 0 and chunk, batch, action_repeat >= 1, got "
                        f"{self.noise_levels}, {self.chunk}, {self.batch}, {self.action_repeat}")
 
+  def actions_for(self, control_steps: int) -> int:
+    """Actions that take ``control_steps`` control steps of 0.1 s, each held for
+    ``action_repeat`` of them (at least one action)."""
+    return max(1, control_steps // self.action_repeat)
+
   @property
   def name(self) -> str:
     noise = "-".join(f"{n:g}" for n in self.noise_levels)

@@ -71,7 +71,7 @@ def policy_chunk(config) -> int:
 def actions_for(config, control_steps: int) -> int:
   """Actions that take ``control_steps`` control steps of 0.1 s with the config's dataset, each
   action held for ``data.pusht.action_repeat`` of them (at least one action)."""
-  return max(1, control_steps // _params(config).action_repeat)
+  return _params(config).actions_for(control_steps)
 
 
 def _image_size(model) -> int:
