@@ -30,7 +30,8 @@ def main(argv=None):
   model = load_model(args.workdir)                        # imports its task, the gridworld
   task = registry.control_task("reach", model.config)
   policy, _ = clone_policy(model, task.controls,          # the green square's velocity only
-                           steps=args.clone_steps)         # behaviour cloning
+                           steps=args.clone_steps,         # behaviour cloning
+                           keep=task.demonstration)    # all the random-action data
 
   held_out = task.start_states(64, "evaluate")
   imagined = world_model_rollout(model, task, task.start_states(args.rollouts, "plan",

@@ -151,6 +151,19 @@ def test_worker_processes_yield_the_same_batches(grid):
 
 
 @pytest.mark.integration
+def test_window_source_reads_only_the_episodes_named(grid):
+  builder_dir, _ = grid
+  episodes = ArrayRecordEpisodes(builder_dir, "train")
+  every = WindowSource(episodes, 6, 1, None)
+  some = WindowSource(episodes, 6, 1, None, only=[3, 1, 3])
+  assert sorted(set(some.index[:, 0])) == [1, 3]
+  np.testing.assert_array_equal(some.index, every.index[np.isin(every.index[:, 0], [1, 3])])
+  np.testing.assert_array_equal(some[0]["frames"], every[int(np.flatnonzero(every.index[:, 0] == 1)[0])]["frames"])
+  with pytest.raises(ValueError, match=r"episode indices must lie in \[0, "):
+    WindowSource(episodes, 6, 1, None, only=[len(episodes)])
+
+
+@pytest.mark.integration
 def test_random_access_needs_array_record(oxe_data):
   with pytest.raises(ValueError, match="wmjax data convert"):
     ArrayRecordEpisodes(oxe_data["language_table"][0], "train")

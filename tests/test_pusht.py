@@ -17,7 +17,7 @@ from conftest import PUSHT_EXPERIMENT_TINY, ROOT, pusht_experiment_script
 from wmjax import cli
 from wmjax.config import load_config
 from wmjax.data import synthetic
-from wmjax.data.sources import ArrayRecordEpisodes
+from wmjax.data.sources import ArrayRecordEpisodes, open_dataset
 from wmjax.eval import rewards
 from wmjax.frames import to_model
 from wmjax.tasks.pusht import dataset as pusht_data
@@ -216,6 +216,27 @@ def test_action_repeat_is_a_frame_per_held_action():
   assert "_k" not in pusht_data.PushTConfig().name
   with pytest.raises(ValueError, match="action_repeat"):
     pusht.PushTSimulator(1, 32, action_repeat=0)
+
+
+@pytest.mark.unit
+def test_antialiased_frames_average_the_drawing_and_read_back_the_poses():
+  """``antialias``: each pixel the mean of its 512-px drawing's area (the drawing's 4x4-pixel
+  blocks at 128 px), smooth in the pose where gym-pusht's own resize is not, and the frame
+  readers find the agent and the T in it as in the gym's frames."""
+  states = pusht.random_initial_states(np.random.default_rng(3), 16)
+  drawing, _ = pusht.PushTSimulator(16, 512).reset(states)
+  smooth, info = pusht.PushTSimulator(16, 128, antialias=True).reset(states)
+  blocks = drawing.reshape(16, 128, 4, 128, 4, 3).astype(np.float64).mean((2, 4))
+  assert np.abs(smooth - blocks).max() <= 1.0  # rounding
+  aliased, _ = pusht.PushTSimulator(16, 128).reset(states)
+  assert np.abs(aliased.astype(np.float64) - blocks).mean() > 5 * np.abs(smooth - blocks).mean()
+  frames, _ = pusht.PushTSimulator(16, 48, antialias=True).reset(states)
+  block, agent, seen = (np.asarray(x) for x in pusht.centroids(to_model(frames)))
+  centre = np.stack([pusht.body_to_world(np.array(pusht.T_CENTROID), p) for p in info["state"][:, 2:]])
+  assert seen.all()
+  np.testing.assert_allclose(agent, info["state"][:, :2], atol=12.0)  # 1.1 px at 48 px
+  np.testing.assert_allclose(block, centre, atol=12.0)
+  assert pusht_data.PushTConfig(antialias=True).name.endswith("_aa")
 
 
 @pytest.mark.unit
@@ -514,7 +535,15 @@ def test_push_task_improves_a_cloned_policy_in_the_world_model_checked_in_gym_pu
   frames, still = task.start(evaluation)
   assert frames.shape == (3, c) + model.image_shape and frames.dtype == np.uint8
   assert still.shape == (3, c - 1, 2)
-  policy, _ = clone_policy(model, task.controls, steps=2, batch_size=4)
+  train_split = open_dataset(model.config.data).split("train")
+  stored_noise = np.array([train_split.episode(i, 0, 1).extras["policy_noise"][0]
+                           for i in range(len(train_split))])
+  np.testing.assert_array_equal(np.sort(stored_noise),  # the split's order is the writer's
+                                np.sort(task.world.episode_noise(len(train_split))))
+  kept = [task.demonstration(train_split.episode(i, 0, 1)) for i in range(len(train_split))]
+  np.testing.assert_array_equal(kept, stored_noise > 0)
+  assert 0 < sum(kept) < len(kept)  # the noisy pushes, not the others
+  policy, _ = clone_policy(model, task.controls, steps=2, batch_size=4, keep=task.demonstration)
   key = jax.random.key(0)
   imagined = world_model_rollout(model, task, evaluation)(policy, key)
   np.testing.assert_allclose(np.asarray(imagined["frames"])[:, :c], to_model(frames), atol=1e-6)

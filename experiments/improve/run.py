@@ -90,7 +90,8 @@ def main(argv=None) -> int:
   began = time.time()
   model = load_model(args.workdir)
   task = registry.control_task(args.task, model.config)
-  start, losses = clone_policy(model, task.controls, steps=args.clone_steps, seed=args.seed)
+  start, losses = clone_policy(model, task.controls, steps=args.clone_steps, seed=args.seed,
+                               keep=task.demonstration)
   cloned = time.time()
   settings = ImproveSettings(rounds=args.rounds, rollouts=args.rollouts, keep=args.keep,
                              fit_steps=args.fit_steps, seed=args.seed)

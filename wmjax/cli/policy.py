@@ -21,13 +21,14 @@ def _model_and_task(args):
 def clone_policy(args, extra) -> int:
   """Behaviour-clone a policy from the training split of a world model's dataset (read and
   normalised as the model reads it) and write it to --out (orbax parameters beside
-  policy.json). The policy sets only the action dimensions --task controls."""
+  policy.json). The policy sets only the action dimensions --task controls, and learns from the
+  episodes --task names as demonstrations (reach: all; push: the noisy scripted pushes)."""
   del extra
   from wmjax.train.policy import clone_policy as clone
   model, task = _model_and_task(args)
   policy, losses = clone(model, task.controls, steps=args.steps, chunk=args.chunk,
                          batch_size=args.batch_size, learning_rate=args.learning_rate,
-                         seed=args.seed)
+                         seed=args.seed, keep=task.demonstration)
   policy.save(args.out, info={"trained_by": "behaviour cloning", "workdir": args.workdir,
                               "task": args.task, "steps": args.steps,
                               "final_loss": float(losses[-10:].mean())})

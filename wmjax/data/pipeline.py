@@ -43,14 +43,20 @@ class WindowSource:
 
   Episodes shorter than ``frames`` (and those without the spec's camera, which have length 0)
   are skipped and counted in ``num_skipped_episodes``; the short ones are logged (the cameraless
-  ones were when the source was read).
+  ones were when the source was read). ``only``: the indices of the episodes to read (default
+  all).
   """
 
   def __init__(self, episodes: ArrayRecordEpisodes, frames: int, stride: int,
-               resolution: tuple[int, int] | None):
+               resolution: tuple[int, int] | None, only: Sequence[int] | None = None):
     self.episodes, self.frames, self.resolution = episodes, frames, resolution
     lengths = episodes.lengths()
-    starts = [(e, s) for e, n in enumerate(lengths) for s in window_starts(int(n), frames, stride)]
+    kept = np.arange(len(lengths)) if only is None else np.unique(np.asarray(only, np.int64))
+    if len(kept) and (kept[0] < 0 or kept[-1] >= len(lengths)):
+      raise ValueError(f"episode indices must lie in [0, {len(lengths)}) for "
+                       f"{episodes.builder_dir} [{episodes.split}], got {kept[0]}..{kept[-1]}")
+    lengths = lengths[kept]
+    starts = [(e, s) for e, n in zip(kept, lengths) for s in window_starts(int(n), frames, stride)]
     self.index = np.asarray(starts, np.int64).reshape(-1, 2)
     self.num_skipped_episodes = int((lengths < frames).sum())
     short = int(((lengths > 0) & (lengths < frames)).sum())

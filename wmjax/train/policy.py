@@ -9,14 +9,15 @@ cloning keeps weights 0 / 1, reward-weighted regression ``exp(return / beta)``).
   policy = LearnedPolicy.create(model.action_stats, "mean_std", context=1, chunk=1,
                                 frame_shape=(16, 16, 3), key=jax.random.key(0))
   policy, losses = fit_policy(policy, demonstrations(model.config, policy, 64), steps=500)
-  # the same for a loaded world model, its rollout context and frames:
-  policy, losses = clone_policy(model, controls=None, steps=500)
+  # the same for a loaded world model, its rollout context and frames, from the training
+  # episodes a control task clones from (None: all):
+  policy, losses = clone_policy(model, task.controls, steps=500, keep=task.demonstration)
 """
 
 from __future__ import annotations
 
 import functools
-from typing import Iterable, Iterator
+from typing import Callable, Iterable, Iterator
 
 import jax
 import jax.numpy as jnp
@@ -25,6 +26,7 @@ import numpy as np
 import optax
 
 from wmjax.data.pipeline import WindowSource, training_pipeline
+from wmjax.data.rlds import Episode
 from wmjax.data.sources import open_dataset
 from wmjax.frames import to_model
 from wmjax.model import LoadedModel
@@ -32,20 +34,27 @@ from wmjax.policy import LearnedPolicy
 
 
 def demonstrations(config: ml_collections.ConfigDict, policy: LearnedPolicy, batch_size: int,
-                   seed: int = 0) -> Iterator[dict[str, np.ndarray]]:
+                   seed: int = 0, keep: Callable[[Episode], bool] | None = None
+                   ) -> Iterator[dict[str, np.ndarray]]:
   """Endless batches of the decisions in the training split of a world model's dataset
   (``config``: the model's config), read by the same pipeline and normalised as the model
-  reads them: ``frames [B, c, H, W, 3]``, ``actions [B, k, A]``."""
+  reads them: ``frames [B, c, H, W, 3]``, ``actions [B, k, A]``. ``keep``: which training
+  episodes to read, asked of each episode's first step (default all; a control task's
+  ``demonstration``)."""
   if config.data.get("latents_dir") or config.data.get("mixture"):
     raise ValueError("behaviour cloning reads one dataset of frames; this config reads "
                      "pre-encoded latents or a mixture")
   dataset = open_dataset(config.data)
-  episodes = dataset.split(config.data.train_split)
-  if episodes.spec.action_dim != policy.module.action_dim:
-    raise ValueError(f"{episodes.spec.name} has {episodes.spec.action_dim}-dim actions, the "
+  split = dataset.split(config.data.train_split)
+  if split.spec.action_dim != policy.module.action_dim:
+    raise ValueError(f"{split.spec.name} has {split.spec.action_dim}-dim actions, the "
                      f"policy {policy.module.action_dim}")
+  episodes = None if keep is None else [
+      i for i in range(len(split)) if split.lengths()[i] and keep(split.episode(i, 0, 1))]
+  if episodes == []:
+    raise ValueError(f"no training episode of {split.builder_dir} is a demonstration to clone")
   c, k = policy.context, policy.chunk
-  source = WindowSource(episodes, c + k, 1, dataset.resolution(episodes.spec))
+  source = WindowSource(split, c + k, 1, dataset.resolution(split.spec), only=episodes)
   batches = training_pipeline([source], [dataset.train_stats()], batch_size=batch_size, seed=seed,
                               normalization=config.data.normalization)
   for batch in batches:
@@ -114,14 +123,16 @@ def fit_policy(policy: LearnedPolicy, batches: Iterable[dict], steps: int,
 
 
 def clone_policy(model: LoadedModel, controls, *, steps: int, chunk: int = 1,
-                 batch_size: int = 64, learning_rate: float = 1e-3, seed: int = 0
+                 batch_size: int = 64, learning_rate: float = 1e-3, seed: int = 0,
+                 keep: Callable[[Episode], bool] | None = None
                  ) -> tuple[LearnedPolicy, np.ndarray]:
   """A new policy for ``model`` (its frames, action statistics and rollout context) setting the
   action dimensions ``controls`` (None: all), behaviour-cloned for ``steps`` steps from the
-  model's dataset (:func:`demonstrations`); the policy and the loss of every step."""
+  training episodes of the model's dataset that ``keep`` keeps (default all;
+  :func:`demonstrations`); the policy and the loss of every step."""
   policy = LearnedPolicy.create(model.action_stats, model.config.data.normalization,
                                 context=model.config.rollout.context, chunk=chunk,
                                 frame_shape=model.image_shape, key=jax.random.key(seed),
                                 controls=controls)
-  return fit_policy(policy, demonstrations(model.config, policy, batch_size, seed), steps,
-                    learning_rate)
+  return fit_policy(policy, demonstrations(model.config, policy, batch_size, seed, keep),
+                    steps, learning_rate)

@@ -51,6 +51,8 @@ class ReachTask:
     """The action dimensions a policy sets: the green square's velocity."""
     return tuple(i // 2 == MOVER for i in range(2 * self.world.num_squares))
 
+  demonstration = None  # a policy for the task is cloned from every training episode
+
   def start_states(self, count: int, purpose: str, index: int = 0, exclude=None) -> np.ndarray:
     """``count`` start states ``[count, n, 2]`` of ``purpose`` (``evaluate`` or ``plan``) and
     draw ``index``, none a training episode's first frame nor one of ``exclude [M, n, 2]``; the

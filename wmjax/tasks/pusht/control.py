@@ -45,6 +45,14 @@ class PushTask:
     """The action dimensions a policy sets: both (the agent's target position)."""
     return None
 
+  @staticmethod
+  def demonstration(episode) -> bool:
+    """Whether a policy for the task is cloned from a training ``episode``
+    (:class:`wmjax.data.rlds.Episode`): the scripted pushes with action noise, not the
+    noiseless ones (their cloned policy would leave little to improve) nor the random and idle
+    agents (``policy_noise`` < 0)."""
+    return bool(episode.extras["policy_noise"][0] > 0)
+
   @classmethod
   def from_config(cls, config) -> PushTask:
     """The task in the Push-T world a world model's config trained on: its frame size, rollout
@@ -80,7 +88,8 @@ class PushTask:
     """How episodes from ``states [B, 5]`` begin, from one simulator run: the ``context`` first
     frames, uint8 ``[B, c, S, S, 3]``, and the still actions between them ``[B, c-1, 2]`` (None
     for one frame)."""
-    sim = simulator.PushTSimulator(len(states), self.image_size, self.world.action_repeat)
+    sim = simulator.PushTSimulator(len(states), self.image_size, self.world.action_repeat,
+                                   antialias=self.world.antialias)
     frames, actions, _ = sim.start(np.asarray(states), self.context)
     return np.stack(frames, 1), (np.stack(actions, 1).astype(np.float32) if actions else None)
 
@@ -99,5 +108,6 @@ class PushTask:
     policy's raw actions ``[B, steps, 2]`` (the still context actions left out)."""
     out = simulator.simulate_policy(policy, np.asarray(states), self.steps,
                                     image_size=self.image_size, key=key, context=self.context,
-                                    action_repeat=self.world.action_repeat)
+                                    action_repeat=self.world.action_repeat,
+                                    antialias=self.world.antialias)
     return {"frames": to_model(out["frames"]), "actions": out["actions"][:, self.context - 1:]}

@@ -62,6 +62,9 @@ class PushTConfig:
   # control steps (0.1 s) each action is held for, one frame per action: with 4 and chunk 1, a
   # frame per decision of the default's 4-step chunks (episode_length counts frames)
   action_repeat: int = 1
+  # frames averaged over each pixel's area instead of gym-pusht's aliased bilinear resize
+  # (``simulator.PushTSimulator``)
+  antialias: bool = False
 
   @classmethod
   def from_dict(cls, values) -> "PushTConfig":
@@ -82,6 +85,17 @@ class PushTConfig:
       raise ValueError(f"noise levels must be >= 0 and chunk, batch, action_repeat >= 1, got "
                        f"{self.noise_levels}, {self.chunk}, {self.batch}, {self.action_repeat}")
 
+  def episode_noise(self, num_episodes: int) -> np.ndarray:
+    """The policy noise of each of ``num_episodes`` episodes of a split ``[N]`` float32, as
+    stored in ``observation/policy_noise``: the scripted pushes cycle through
+    ``noise_levels`` (in the order of :func:`episode_kinds`), the random and idle agents are
+    :data:`RANDOM_AGENT` / :data:`IDLE_AGENT`. Decided by the config alone."""
+    kinds = episode_kinds(self.mix, num_episodes)
+    scripted = np.cumsum(kinds == 0) - 1  # index of each scripted episode among the scripted
+    levels = np.asarray(self.noise_levels, np.float32)[scripted % len(self.noise_levels)]
+    return np.select([kinds == 0, kinds == 1], [levels, RANDOM_AGENT], IDLE_AGENT
+                     ).astype(np.float32)
+
   def actions_for(self, control_steps: int) -> int:
     """Actions that take ``control_steps`` control steps of 0.1 s, each held for
     ``action_repeat`` of them (at least one action)."""
@@ -97,7 +111,8 @@ class PushTConfig:
   def _variant_name(self) -> str:
     """Empty for the defaults (all scripted, no action repeat), so that the datasets written
     before the mix and the repeat existed keep their names."""
-    repeat = "" if self.action_repeat == 1 else f"_k{self.action_repeat}"
+    repeat = ("" if self.action_repeat == 1 else f"_k{self.action_repeat}") + (
+        "_aa" if self.antialias else "")
     if self.mix == (1.0, 0.0, 0.0):
       return repeat
     return "_m" + "-".join(f"{f:g}" for f in self.mix) + f"_r{self.random_reach:g}" + repeat
@@ -121,18 +136,14 @@ def _draws(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
   through ``config.noise_levels`` over the scripted episodes; :data:`RANDOM_AGENT` /
   :data:`IDLE_AGENT` for the others), the start states ``[b, 5]`` and the simulation's key seed.
   The kinds draw nothing from ``rng``: the start states are the same for every mix."""
-  levels = config.noise_levels
   kinds = episode_kinds(config.mix, num_episodes)
-  scripted = np.cumsum(kinds == 0) - 1  # index of each scripted episode among the scripted
-  other = {1: RANDOM_AGENT, 2: IDLE_AGENT}
+  noise = config.episode_noise(num_episodes)
   for first in range(0, num_episodes, config.batch):
     count = min(config.batch, num_episodes - first)
-    batch_kinds = kinds[first:first + count]
-    noise = np.array([levels[scripted[first + i] % len(levels)] if k == 0 else other[k]
-                      for i, k in enumerate(batch_kinds)], np.float32)
     states = simulator.random_initial_states(rng, count, max_offset=config.max_offset,
                                              max_angle=config.max_angle)
-    yield batch_kinds, noise, states, int(rng.integers(2**31))
+    yield (kinds[first:first + count], noise[first:first + count], states,
+           int(rng.integers(2**31)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -188,7 +199,8 @@ def collect(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
     policy = _policy(config, kinds, noise, states)
     run = simulator.simulate_policy(policy, states, config.episode_length - 1,
                                     image_size=config.image_size, key=jax.random.key(seed),
-                                    action_repeat=config.action_repeat)
+                                    action_repeat=config.action_repeat,
+                                    antialias=config.antialias)
     for i in range(len(states)):
       actions = np.concatenate([run["actions"][i], run["state"][i, -1:, :2]])  # last: stay
       coverage = run["coverage"][i]
