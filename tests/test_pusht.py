@@ -219,27 +219,6 @@ def test_action_repeat_is_a_frame_per_held_action():
 
 
 @pytest.mark.unit
-def test_antialiased_frames_average_the_drawing_and_read_back_the_poses():
-  """``antialias``: each pixel the mean of its 512-px drawing's area (the drawing's 4x4-pixel
-  blocks at 128 px), smooth in the pose where gym-pusht's own resize is not, and the frame
-  readers find the agent and the T in it as in the gym's frames."""
-  states = pusht.random_initial_states(np.random.default_rng(3), 16)
-  drawing, _ = pusht.PushTSimulator(16, 512).reset(states)
-  smooth, info = pusht.PushTSimulator(16, 128, antialias=True).reset(states)
-  blocks = drawing.reshape(16, 128, 4, 128, 4, 3).astype(np.float64).mean((2, 4))
-  assert np.abs(smooth - blocks).max() <= 1.0  # rounding
-  aliased, _ = pusht.PushTSimulator(16, 128).reset(states)
-  assert np.abs(aliased.astype(np.float64) - blocks).mean() > 5 * np.abs(smooth - blocks).mean()
-  frames, _ = pusht.PushTSimulator(16, 48, antialias=True).reset(states)
-  block, agent, seen = (np.asarray(x) for x in pusht.centroids(to_model(frames)))
-  centre = np.stack([pusht.body_to_world(np.array(pusht.T_CENTROID), p) for p in info["state"][:, 2:]])
-  assert seen.all()
-  np.testing.assert_allclose(agent, info["state"][:, :2], atol=12.0)  # 1.1 px at 48 px
-  np.testing.assert_allclose(block, centre, atol=12.0)
-  assert pusht_data.PushTConfig(antialias=True).name.endswith("_aa")
-
-
-@pytest.mark.unit
 def test_config_profiles():
   cpu, h100 = (load_config(str(ROOT / "configs" / f"pusht.py:{p}")) for p in ("cpu", "h100"))
   assert (cpu.model.depth, cpu.batch_size, cpu.model.dtype) == (6, 16, "float32")

@@ -88,8 +88,7 @@ class PushTask:
     """How episodes from ``states [B, 5]`` begin, from one simulator run: the ``context`` first
     frames, uint8 ``[B, c, S, S, 3]``, and the still actions between them ``[B, c-1, 2]`` (None
     for one frame)."""
-    sim = simulator.PushTSimulator(len(states), self.image_size, self.world.action_repeat,
-                                   antialias=self.world.antialias)
+    sim = simulator.PushTSimulator(len(states), self.image_size, self.world.action_repeat)
     frames, actions, _ = sim.start(np.asarray(states), self.context)
     return np.stack(frames, 1), (np.stack(actions, 1).astype(np.float32) if actions else None)
 
@@ -108,6 +107,5 @@ class PushTask:
     policy's raw actions ``[B, steps, 2]`` (the still context actions left out)."""
     out = simulator.simulate_policy(policy, np.asarray(states), self.steps,
                                     image_size=self.image_size, key=key, context=self.context,
-                                    action_repeat=self.world.action_repeat,
-                                    antialias=self.world.antialias)
+                                    action_repeat=self.world.action_repeat)
     return {"frames": to_model(out["frames"]), "actions": out["actions"][:, self.context - 1:]}

@@ -62,9 +62,6 @@ class PushTConfig:
   # control steps (0.1 s) each action is held for, one frame per action: with 4 and chunk 1, a
   # frame per decision of the default's 4-step chunks (episode_length counts frames)
   action_repeat: int = 1
-  # frames averaged over each pixel's area instead of gym-pusht's aliased bilinear resize
-  # (``simulator.PushTSimulator``)
-  antialias: bool = False
 
   @classmethod
   def from_dict(cls, values) -> "PushTConfig":
@@ -111,8 +108,7 @@ class PushTConfig:
   def _variant_name(self) -> str:
     """Empty for the defaults (all scripted, no action repeat), so that the datasets written
     before the mix and the repeat existed keep their names."""
-    repeat = ("" if self.action_repeat == 1 else f"_k{self.action_repeat}") + (
-        "_aa" if self.antialias else "")
+    repeat = "" if self.action_repeat == 1 else f"_k{self.action_repeat}"
     if self.mix == (1.0, 0.0, 0.0):
       return repeat
     return "_m" + "-".join(f"{f:g}" for f in self.mix) + f"_r{self.random_reach:g}" + repeat
@@ -199,8 +195,7 @@ def collect(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
     policy = _policy(config, kinds, noise, states)
     run = simulator.simulate_policy(policy, states, config.episode_length - 1,
                                     image_size=config.image_size, key=jax.random.key(seed),
-                                    action_repeat=config.action_repeat,
-                                    antialias=config.antialias)
+                                    action_repeat=config.action_repeat)
     for i in range(len(states)):
       actions = np.concatenate([run["actions"][i], run["state"][i, -1:, :2]])  # last: stay
       coverage = run["coverage"][i]

@@ -129,8 +129,7 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
     policy = policies[name]
     policy_key = jax.random.fold_in(jax.random.key(seed), index)
     truth = pusht.simulate_policy(policy, states, steps, image_size=size, key=policy_key,
-                                  context=c, action_repeat=_params(config).action_repeat,
-                                  antialias=_params(config).antialias)
+                                  context=c, action_repeat=_params(config).action_repeat)
     start, known = truth["frames"][:, :c], truth["actions"][:, :c - 1]
     rollout_key = jax.random.fold_in(jax.random.key(seed + 1), index)
     if scan:
@@ -254,8 +253,7 @@ class SimulatorLookahead(planning.Planner):
     candidates = np.asarray(candidates)
     b, k, n = candidates.shape[:3]
     if self._lookahead is None:
-      self._lookahead = pusht.PushTSimulator(b * k, self.sim.image_size, self.sim.action_repeat,
-                                             antialias=self.sim.antialias)
+      self._lookahead = pusht.PushTSimulator(b * k, self.sim.image_size, self.sim.action_repeat)
     frame, _ = self._lookahead.reset(np.repeat(self.sim.reset_states(), k, axis=0))
     rollout = [np.repeat(np.asarray(frames, np.uint8)[:, :-1], k, axis=0), frame[:, None]]
     for t in range(n):
@@ -295,8 +293,7 @@ def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
   for k in candidates:
     rows[k] = {}
     for kind in planners:
-      sim = pusht.PushTSimulator(episodes, size, _params(config).action_repeat,
-                                 antialias=_params(config).antialias)
+      sim = pusht.PushTSimulator(episodes, size, _params(config).action_repeat)
       if kind == "world_model":
         planner = planning.Planner(
             model.world_model, model.params, proposal, value_fn, num_candidates=k, horizon=h,

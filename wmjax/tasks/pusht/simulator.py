@@ -37,7 +37,6 @@ from wmjax.frames import to_model
 from wmjax.policy import load_policy
 
 WORKSPACE = 512.0
-DRAWING_SIZE = 512  # gym-pusht draws every frame at this size, then resizes it
 GOAL_POSE = (256.0, 256.0, np.pi / 4)  # x, y, theta
 SUCCESS_COVERAGE = 0.95
 # pygame colour names gym-pusht draws with, in the order of PALETTE's classes.
@@ -238,33 +237,18 @@ class PushTSimulator:
 
   ``action_repeat = k``: one step holds its target for k control steps of 0.1 s (gym-pusht's
   own), and only the last one's frame is returned: one frame per decision, k times the motion
-  per frame.
+  per frame."""
 
-  ``antialias``: frames are gym-pusht's 512-px drawing averaged over each pixel's area
-  (``cv2.INTER_AREA``) instead of gym-pusht's own bilinear resize, which samples the drawing at a
-  few points per pixel: at 48 px its T's 3-pixel bars and the agent change shape from one
-  sub-pixel pose to the next, where the area average changes smoothly with the pose."""
-
-  def __init__(self, num_envs: int, image_size: int = 96, action_repeat: int = 1, *,
-               antialias: bool = False):
+  def __init__(self, num_envs: int, image_size: int = 96, action_repeat: int = 1):
     check_installed()
     import gymnasium as gym
     if num_envs < 1 or image_size < 8 or action_repeat < 1:
       raise ValueError(f"need num_envs >= 1, image_size >= 8 and action_repeat >= 1, got "
                        f"{num_envs}, {image_size}, {action_repeat}")
-    self.image_size, self.action_repeat, self.antialias = image_size, action_repeat, antialias
-    drawn = DRAWING_SIZE if antialias else image_size
+    self.image_size, self.action_repeat = image_size, action_repeat
     self.envs = [gym.make("gym_pusht/PushT-v0", obs_type="pixels", render_mode="rgb_array",
-                          observation_width=drawn, observation_height=drawn)
+                          observation_width=image_size, observation_height=image_size)
                  for _ in range(num_envs)]
-
-  def _frames(self, frames: list[np.ndarray]) -> np.ndarray:
-    """``[B, S, S, 3]`` uint8 from the environments' observations."""
-    if self.antialias:
-      import cv2  # gym-pusht's own dependency
-      size = (self.image_size, self.image_size)
-      frames = [cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in frames]
-    return np.stack(frames)
 
   def reset(self, states: np.ndarray) -> tuple[np.ndarray, dict]:
     """Set every environment to ``states [B, 5]``; returns frames ``[B, S, S, 3]`` uint8, info."""
@@ -272,7 +256,7 @@ class PushTSimulator:
     if states.shape != (len(self.envs), 5):
       raise ValueError(f"states must be [{len(self.envs)}, 5], got {states.shape}")
     frames = [env.reset(options={"reset_to_state": s})[0] for env, s in zip(self.envs, states)]
-    return self._frames(frames), self._info()
+    return np.stack(frames), self._info()
 
   def step(self, actions: np.ndarray) -> tuple[np.ndarray, dict]:
     """One step (``action_repeat`` control steps of 0.1 s) towards target positions ``[B, 2]``:
@@ -282,7 +266,7 @@ class PushTSimulator:
       raise ValueError(f"actions must be finite [{len(self.envs)}, 2], got {actions.shape}")
     for _ in range(self.action_repeat):
       frames = [env.step(a)[0] for env, a in zip(self.envs, actions)]
-    return self._frames(frames), self._info()
+    return np.stack(frames), self._info()
 
   def _info(self) -> dict:
     coverage, states = [], []
@@ -318,18 +302,17 @@ def stay_actions(frame_info: dict) -> np.ndarray:
 
 
 def simulate_policy(policy: PolicyFn, states: np.ndarray, steps: int, *, image_size: int,
-                    key: jax.Array, context: int = 1, action_repeat: int = 1,
-                    antialias: bool = False) -> dict[str, np.ndarray]:
+                    key: jax.Array, context: int = 1, action_repeat: int = 1
+                    ) -> dict[str, np.ndarray]:
   """Run ``policy`` closed loop in the simulator from ``states [B, 5]``, each of its actions held
-  for ``action_repeat`` control steps (:class:`PushTSimulator`, rendering with ``antialias``; a
-  step below is one action).
+  for ``action_repeat`` control steps (:class:`PushTSimulator`; a step below is one action).
 
   The first ``context - 1`` steps keep the agent still (so a world model can start from the same
   ``context`` frames and known actions); then the policy runs for ``steps`` steps, called
   on the last ``context`` frames whenever its previous chunk is used up (call ``i`` gets
   ``fold_in(key, i)``). Returns ``frames [B, context+steps, S, S, 3]`` uint8, ``actions
   [B, context-1+steps, 2]``, ``coverage [B, context+steps]`` and ``state [B, context+steps, 5]``."""
-  sim = PushTSimulator(len(states), image_size, action_repeat, antialias=antialias)
+  sim = PushTSimulator(len(states), image_size, action_repeat)
   frames, actions, infos = sim.start(states, context)
 
   def advance(action):
