@@ -68,7 +68,8 @@ def get_config(profile: str = "cpu") -> ml_collections.ConfigDict:
       regime="irasim", num_context=2, level_distribution="logit_normal", level_loc=1.0,
       object_weight=20.0, object_dilation=3))
   config.sampling = sampling_config(sampler="ddim", num_steps=8, matrix="autoregressive",
-                                    context_level=0.0, clip_denoised=True, kv_cache=True)
+                                    context_level=0.0, clip_denoised=True, kv_cache=True,
+                                    guidance_scale=2.0)
   config.rollout = ml_collections.ConfigDict(dict(context=2, horizon=1, short_actions=4))
   config.optim = optim_config(learning_rate=2e-3, schedule="cosine", warmup_steps=100,
                               total_steps=3000, b2=0.99, grad_clip=1.0, ema_decay=0.999)
@@ -87,4 +88,5 @@ def get_config(profile: str = "cpu") -> ml_collections.ConfigDict:
     config.train.update(num_steps=3000, checkpoint_every=500, eval_every=1000)
     config.data.num_workers = 4
     config.batch_size = 64
+    config.sampling.guidance_scale = 1.0  # as measured on the GPU (guidance not yet measured)
   return config
