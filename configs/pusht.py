@@ -17,7 +17,10 @@ loss weighs the pixels within 3 of an object (agent, T, goal) of the last contex
 frame, and an unweighted MSE is lowest for a model that drops it. Rollouts chain one-frame
 blocks from two context frames, each in 8 DDIM steps with the temporal KV cache (2 steps leave
 the sample near the blurred mean: the ranking of one training seed went from Pearson 0.45 to
-0.84). ``experiments/pusht/RESULTS.md`` has the measurements behind each choice.
+0.84). The ``cpu`` profile samples with classifier-free guidance on the actions at scale 2 (the
+network is trained with a tenth of its windows' actions dropped, ``model.action_dropout``): it
+doubles the network calls and puts the imagined agent within about a pixel of the simulator's
+instead of 6 px. ``experiments/pusht/RESULTS.md`` has the measurements behind each choice.
 
 Profiles (``configs/pusht.py:PROFILE``):
 
@@ -27,7 +30,8 @@ Profiles (``configs/pusht.py:PROFILE``):
 - ``h100``: the same recipe and data at 32.5M parameters (depth 12, width 384, 6 heads) in
   bfloat16 with the fastest attention the GPU has, 3000 steps of batch 64 at learning rate 8e-4,
   checkpointed every 500 steps so that a run cut by a job limit resumes. Two training seeds ran
-  side by side on one H200 in 7.4 minutes with evaluation (``experiments/pusht/RESULTS.md``).
+  side by side on one H200 in 7.4 minutes with evaluation (``experiments/pusht/RESULTS.md``),
+  without guidance, which is not yet measured there.
 """
 
 import dataclasses
