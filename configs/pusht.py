@@ -26,7 +26,7 @@ Profiles (``configs/pusht.py:PROFILE``):
 
 - ``cpu`` (default): 1.9M parameters (depth 6, width 128), 1920 training episodes, 3000 steps of
   batch 16 in float32, sized for the whole experiment (``experiments/pusht/run.py``) on 2 CPU
-  cores (about 65-70 minutes of training).
+  cores (about 55-65 minutes of training).
 - ``h100``: the same recipe and data at 32.5M parameters (depth 12, width 384, 6 heads) in
   bfloat16 with the fastest attention the GPU has, 3000 steps of batch 64 at learning rate 8e-4,
   checkpointed every 500 steps so that a run cut by a job limit resumes. Two training seeds ran
