@@ -11,6 +11,9 @@ import os
 from wmjax.cli import common
 
 
+TASK_HELP = "control task: reach (gridworld, the default) or push (Push-T)"
+
+
 def _model_and_task(args):
   from wmjax import registry
   from wmjax.model import load_model
@@ -73,7 +76,7 @@ def add_parser(sub) -> None:
                          description=clone_policy.__doc__)
   clone.add_argument("--workdir", required=True, help=common.WORKDIR_HELP)
   clone.add_argument("--out", required=True, help="new directory for the policy")
-  clone.add_argument("--task", default="reach", help="control task: reach (gridworld, the default) or push (Push-T)")
+  clone.add_argument("--task", default="reach", help=TASK_HELP)
   clone.add_argument("--chunk", type=int, default=1, help="actions per policy call (default 1)")
   clone.add_argument("--steps", type=int, default=300, help="training steps (default 300)")
   clone.add_argument("--batch_size", type=int, default=64)
@@ -87,7 +90,7 @@ def add_parser(sub) -> None:
   better.add_argument("--workdir", required=True, help=common.WORKDIR_HELP)
   better.add_argument("--policy", required=True, help="policy directory (wmjax clone-policy)")
   better.add_argument("--out", required=True, help="new directory for the improved policy")
-  better.add_argument("--task", default="reach", help="control task: reach (gridworld, the default) or push (Push-T)")
+  better.add_argument("--task", default="reach", help=TASK_HELP)
   better.add_argument("--rounds", type=int, default=3)
   better.add_argument("--rollouts", type=int, default=1024, help="episodes per round")
   better.add_argument("--keep", type=float, default=0.1, help="fraction of episodes kept")

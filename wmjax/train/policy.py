@@ -49,8 +49,9 @@ def demonstrations(config: ml_collections.ConfigDict, policy: LearnedPolicy, bat
   if split.spec.action_dim != policy.module.action_dim:
     raise ValueError(f"{split.spec.name} has {split.spec.action_dim}-dim actions, the "
                      f"policy {policy.module.action_dim}")
+  lengths = split.lengths()  # 0 for an episode without the spec's camera
   episodes = None if keep is None else [
-      i for i in range(len(split)) if split.lengths()[i] and keep(split.episode(i, 0, 1))]
+      i for i in range(len(split)) if lengths[i] and keep(split.episode(i, 0, 1))]
   if episodes == []:
     raise ValueError(f"no training episode of {split.builder_dir} is a demonstration to clone")
   c, k = policy.context, policy.chunk
