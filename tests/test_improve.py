@@ -145,6 +145,12 @@ def test_rounds_keep_the_best_episodes_and_cut_them_into_decisions():
   assert rwr[4] == 1.0 and rwr[2] == 0 and rwr[1] == pytest.approx(np.exp(-0.5))
   with pytest.raises(ValueError, match="weighting must be one of"):
     ImproveSettings(weighting="best")
+  # groups of 5 (one start state each) keep the best of each, though the second group's best
+  # (-4) is worse than all but one of the first group's
+  grouped = episode_weights(returns, ImproveSettings(rollouts=10, group=5, keep=0.2))
+  assert grouped.tolist() == [0, 0, 0, 0, 1, 1, 0, 0, 0, 0]
+  with pytest.raises(ValueError, match="divide rollouts"):
+    ImproveSettings(rollouts=10, group=3)
   policy = _policy(chunk=2)
   frames = np.arange(3 * 6).reshape(3, 6, 1, 1, 1) * np.ones((1, 1, 16, 16, 3))
   actions = np.arange(3 * 5 * 4, dtype=np.float32).reshape(3, 5, 4)
@@ -180,3 +186,22 @@ def test_clone_and_improve_commands_write_a_policy_and_a_checked_report(trained_
   assert cli.main(["improve", "--workdir", str(trained_workdir), "--policy", start, "--out",
                    better]) == 2
   assert "exists" in capsys.readouterr().err
+
+
+@pytest.mark.integration
+def test_true_environment_improvement_runs_without_the_world_model_in_groups(trained_workdir):
+  from wmjax import registry
+  from wmjax.model import load_model
+  from wmjax.train.improve import improve_on_task
+  model = load_model(str(trained_workdir))
+  task = registry.control_task("reach", model.config)
+  policy = LearnedPolicy.create(model.action_stats, model.config.data.normalization,
+                                context=model.config.rollout.context, chunk=1,
+                                frame_shape=model.image_shape, key=jax.random.key(0),
+                                controls=task.controls, channels=(8, 8), hidden=16)
+  settings = ImproveSettings(rounds=1, rollouts=8, group=4, keep=0.25, fit_steps=2)
+  _, report = improve_on_task(model, policy, task, settings, evaluation_states=4,
+                              in_true_environment=True, imagine=False)
+  last = report["rounds"][-1]
+  assert last["kept_episodes"] == 2  # one of each start state's four
+  assert "imagined_value" not in last and np.isfinite(last["true_gain"])

@@ -43,15 +43,16 @@ def clone_policy(args, extra) -> int:
 def improve(args, extra) -> int:
   """Improve a policy on a control task inside the world model (or, with --true_environment,
   in the task's true environment: the upper bound): --rounds rounds of --rollouts noisy
-  episodes, the best --keep fraction kept and cloned. After every round the deterministic policy
+  episodes (--group of them from each start state), the best --keep fraction (of each group)
+  kept and cloned. After every round the deterministic policy
   is checked from --evaluation_states held-out start states in the true environment and in the
   world model. Writes the policy to --out and report.json / report.md beside it."""
   del extra
   from wmjax.policy import load_policy
   from wmjax.train.improve import ImproveSettings, improve_on_task, report_table
   model, task = _model_and_task(args)
-  settings = ImproveSettings(rounds=args.rounds, rollouts=args.rollouts, keep=args.keep,
-                             weighting=args.weighting, temperature=args.temperature,
+  settings = ImproveSettings(rounds=args.rounds, rollouts=args.rollouts, group=args.group,
+                             keep=args.keep, weighting=args.weighting, temperature=args.temperature,
                              fit_steps=args.fit_steps, seed=args.seed)
   if os.path.exists(args.out):
     raise FileExistsError(f"{args.out} exists; wmjax improve writes a new policy directory")
@@ -93,7 +94,11 @@ def add_parser(sub) -> None:
   better.add_argument("--task", default="reach", help=TASK_HELP)
   better.add_argument("--rounds", type=int, default=3)
   better.add_argument("--rollouts", type=int, default=1024, help="episodes per round")
-  better.add_argument("--keep", type=float, default=0.1, help="fraction of episodes kept")
+  better.add_argument("--group", type=int, default=1,
+                      help="episodes per start state, each weighed against its state's (default 1: "
+                           "one each, all weighed together)")
+  better.add_argument("--keep", type=float, default=0.1,
+                      help="fraction of episodes kept (of each group's, with --group)")
   better.add_argument("--weighting", choices=("filter", "rwr"), default="filter",
                       help="filter: keep the best --keep; rwr: reward-weighted regression")
   better.add_argument("--temperature", type=float, default=1.0, help="exploration noise")

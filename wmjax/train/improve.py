@@ -18,6 +18,7 @@ between imagined and true value (how much of the improvement exploits the model'
 from __future__ import annotations
 
 import dataclasses
+import logging
 from typing import Callable
 
 import jax
@@ -34,6 +35,7 @@ Rollout = Callable[[LearnedPolicy, jax.Array], dict]
 # frames [B, T, H, W, 3] -> returns [B]
 Score = Callable[[np.ndarray], np.ndarray]
 WEIGHTINGS = ("filter", "rwr")
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,10 +44,15 @@ class ImproveSettings:
   deviation); ``weighting`` ``filter`` keeps the best ``keep`` fraction, ``rwr`` weighs by
   ``exp((return - best) / beta)``; each round fits ``fit_steps`` Adam steps of ``batch_size``
   decisions at ``learning_rate``, on this round's kept decisions or, with ``replay``, on those of
-  every round so far."""
+  every round so far. With ``group`` > 1 the episodes start from ``rollouts / group`` states,
+  ``group`` episodes each, and every episode is weighed against its own state's (``filter`` keeps
+  the best ``keep`` fraction of each group, ``rwr``'s best is the group's): where the return
+  depends on the start as much as on the actions, an easy start then does not pass for a good
+  action."""
 
   rounds: int = 3
   rollouts: int = 1024
+  group: int = 1
   temperature: float = 1.0
   weighting: str = "filter"
   keep: float = 0.1
@@ -61,17 +68,32 @@ class ImproveSettings:
       raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {self.weighting!r}")
     if not 0 < self.keep <= 1:
       raise ValueError(f"keep must be in (0, 1], got {self.keep}")
+    if self.group < 1 or self.rollouts % self.group:
+      raise ValueError(f"group must be >= 1 and divide rollouts ({self.rollouts}), got "
+                       f"{self.group}")
     if self.rounds < 1 or self.rollouts < 1 or self.fit_steps < 1 or self.beta <= 0:
       raise ValueError("rounds, rollouts and fit_steps must be >= 1 and beta > 0, got "
                        f"{self.rounds}, {self.rollouts}, {self.fit_steps}, {self.beta}")
 
 
 def episode_weights(returns: np.ndarray, settings: ImproveSettings) -> np.ndarray:
-  """Per-episode weights ``[B]`` from the returns ``[B]`` (non-finite returns weigh 0)."""
+  """Per-episode weights ``[B]`` from the returns ``[B]`` (non-finite returns weigh 0): with
+  ``settings.group`` > 1 each consecutive ``group`` episodes (one start state's) among
+  themselves, else all of them together."""
   returns = np.asarray(returns, np.float64)
+  if len(returns) % settings.group:
+    raise ValueError(f"{len(returns)} returns do not split into groups of {settings.group}")
+  if not np.isfinite(returns).any():
+    raise ValueError("no episode has a finite return")
+  pools = returns.reshape(-1, settings.group) if settings.group > 1 else returns[None]
+  return np.concatenate([_pool_weights(pool, settings) for pool in pools])
+
+
+def _pool_weights(returns: np.ndarray, settings: ImproveSettings) -> np.ndarray:
+  """Weights ``[P]`` of returns ``[P]`` weighed among themselves (zeros where none is finite)."""
   finite = np.isfinite(returns)
   if not finite.any():
-    raise ValueError("no episode has a finite return")
+    return np.zeros(len(returns))
   if settings.weighting == "rwr":
     return np.where(finite, np.exp((returns - returns[finite].max()) / settings.beta), 0.0)
   count = max(1, int(round(settings.keep * finite.sum())))
@@ -134,6 +156,7 @@ def improve(policy: LearnedPolicy, rollout: Rollout, score: Score, settings: Imp
     policy, losses = fit_policy(policy, batches, settings.fit_steps, settings.learning_rate)
     history.append({"round": r, **record, "decisions": int(len(frames)),
                     "fit_loss": float(losses[-10:].mean()), **(check(policy) if check else {})})
+    log.info("round %d: %s", r, {k: v for k, v in history[-1].items() if k != "true_returns"})
   return policy, history
 
 
@@ -197,22 +220,27 @@ def task_check(task, states: np.ndarray, imagine: Rollout | None, key: jax.Array
 
 def improve_on_task(model: LoadedModel, policy: LearnedPolicy, task, settings: ImproveSettings,
                     *, evaluation_states: int = 128, evaluation_draw: int = 0,
-                    in_true_environment: bool = False) -> tuple[LearnedPolicy, dict]:
+                    in_true_environment: bool = False, imagine: bool = True
+                    ) -> tuple[LearnedPolicy, dict]:
   """Improve ``policy`` on ``task`` in ``model`` (or, ``in_true_environment``, in the task's true
   environment: the upper bound) from the task's ``plan`` start states, checked after every round
   on ``evaluation_states`` held-out start states of the ``evaluate`` stream's draw
   ``evaluation_draw`` (none of which is a training
   episode's start or a state the policy learns from). Returns the final policy and a report: the
   settings, ``held_out`` (checked: the evaluation states are no training start state), and one
-  record per round (:func:`task_check`)."""
+  record per round (:func:`task_check`). ``imagine=False`` leaves the world model out of the
+  checks (no ``imagined_value`` or ``gap``): with ``in_true_environment`` the world model's
+  network then never runs, only its config, action statistics and frame shape are read."""
   if policy.context != model.config.rollout.context:
     raise ValueError(f"the policy reads {policy.context} frames, the world model's rollouts keep "
                      f"{model.config.rollout.context} (rollout.context)")
   evaluation = task.start_states(evaluation_states, "evaluate", evaluation_draw)
-  imagination = task.start_states(settings.rollouts, "plan", exclude=evaluation)
+  imagination = np.repeat(task.start_states(settings.rollouts // settings.group, "plan",
+                                            exclude=evaluation), settings.group, axis=0)
   rollout = (true_rollout(task, imagination) if in_true_environment
              else world_model_rollout(model, task, imagination))
-  check = task_check(task, evaluation, world_model_rollout(model, task, evaluation),
+  check = task_check(task, evaluation,
+                     world_model_rollout(model, task, evaluation) if imagine else None,
                      jax.random.key(settings.seed + 1))
   policy, history = improve(policy, rollout, task.reward, settings, check)
   report = {"improved_in": "true environment" if in_true_environment else "world model",
@@ -230,7 +258,9 @@ def report_table(report: dict) -> str:
            "| round | true value | true gain (paired) | true success | imagined value | gap |",
            "|---|---|---|---|---|---|"]
   for r in report["rounds"]:
+    imagined = (f"{r['imagined_value']:.3f} | {r['gap']:+.3f}" if "imagined_value" in r
+                else "not checked | ")
     lines.append(f"| {r['round']} | {r['true_value']:.3f} ± {r['true_value_stderr']:.3f} | "
                  f"{r['true_gain']:+.3f} ± {r['true_gain_stderr']:.3f} | {r['true_success']:.3f} | "
-                 f"{r['imagined_value']:.3f} | {r['gap']:+.3f} |")
+                 f"{imagined} |")
   return "\n".join(lines)
