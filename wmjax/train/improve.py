@@ -142,8 +142,10 @@ def improve(policy: LearnedPolicy, rollout: Rollout, score: Score, settings: Imp
             check: Callable[[LearnedPolicy], dict] | None = None
             ) -> tuple[LearnedPolicy, list[dict]]:
   """``settings.rounds`` rounds: :func:`collect`, then fit the policy to the decisions kept this
-  round (with ``settings.replay``, every round so far). Returns the final policy and one record
-  per round (round 0: the starting policy), each with ``check(policy)`` when given."""
+  round (with ``settings.replay``, every round so far). With ``settings.group`` > 1, ``rollout``
+  must start each consecutive ``group`` episodes from one state (:func:`improve_on_task`'s do).
+  Returns the final policy and one record per round (round 0: the starting policy), each with
+  ``check(policy)`` when given."""
   key = jax.random.key(settings.seed)
   history = [{"round": 0, **(check(policy) if check else {})}]
   memory = []
