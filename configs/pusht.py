@@ -31,7 +31,7 @@ Profiles (``configs/pusht.py:PROFILE``):
   bfloat16 with the fastest attention the GPU has, 3000 steps of batch 64 at learning rate 8e-4,
   checkpointed every 500 steps so that a run cut by a job limit resumes. Two training seeds ran
   side by side on one H200 in 7.4 minutes with evaluation (``experiments/pusht/RESULTS.md``),
-  without guidance, which is not yet measured there.
+  without guidance: guidance 2 measured no better there (its agent is already in place).
 """
 
 import dataclasses
@@ -92,5 +92,5 @@ def get_config(profile: str = "cpu") -> ml_collections.ConfigDict:
     config.train.update(num_steps=3000, checkpoint_every=500, eval_every=1000)
     config.data.num_workers = 4
     config.batch_size = 64
-    config.sampling.guidance_scale = 1.0  # as measured on the GPU (guidance not yet measured)
+    config.sampling.guidance_scale = 1.0  # guidance 2 measured no better at this size
   return config
