@@ -49,7 +49,7 @@ def check_batch_divisible(batch: int, mesh: Mesh, micro_batches: int = 1, proces
   """ValueError unless a global batch of ``batch`` examples splits evenly over the batch axes of
   ``mesh`` (the data-parallel size), each shard into ``micro_batches`` gradient-accumulation
   micro-batches, and over ``processes`` feeding processes. The one home of this check: the
-  compilation of a run's step (:mod:`wmjax.train.context`), the train step and
+  train step before it compiles or runs (:func:`wmjax.train.step.check_batch_shapes`) and
   :func:`global_batch` call it."""
   axes = [a for a in batch_axes if a in mesh.axis_names]
   data_parallel = int(np.prod([mesh.shape[a] for a in axes]))

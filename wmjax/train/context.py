@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import time
 
 import jax
@@ -24,31 +25,38 @@ from jax.sharding import Mesh
 from wmjax import parallel
 from wmjax.model import WorldModel
 from wmjax.nn import attention, forward_flops
-from wmjax.train import fit, memory
+from wmjax.train import fit
 from wmjax.train.data import TrainData, build_data
 from wmjax.train.step import ShardedTrainer
 
 
 @dataclasses.dataclass(frozen=True)
 class TrainContext:
-  """What a run trains with: ``trainer`` holds the step of ``world_model`` on ``mesh``, a mesh
-  over the devices of ``target``."""
+  """What a run trains with: ``world_model`` on ``mesh``, a mesh over the devices of ``target``;
+  its :attr:`trainer` is built when first asked for."""
 
   config: ml_collections.ConfigDict  # as trained: model.remat and optim.grad_accum as fitted
   target: fit.Target
   mesh: Mesh
   world_model: WorldModel
-  trainer: ShardedTrainer
   data: TrainData | None = None  # None where the step is only compiled
 
+  @functools.cached_property
+  def trainer(self) -> ShardedTrainer:
+    """The sharded trainer of ``world_model`` on windows of ``data.frames`` frames (the model's
+    ``num_frames`` for a config without data), its attention built for the target's platform."""
+    config = self.config
+    frames = config.data.frames if "data" in config else self.world_model.network.num_frames
+    return ShardedTrainer(self.world_model, config, self.mesh, tuple(config.frame_shape), frames,
+                          self.target.platform)
+
   def with_setting(self, remat: str, grad_accum: int) -> TrainContext:
-    """The same mesh, model and data with ``model.remat`` and ``optim.grad_accum`` changed, and a
-    trainer for them."""
-    config = with_setting(self.config, remat, grad_accum)
+    """The same mesh, model and data with ``model.remat`` and ``optim.grad_accum`` changed (and
+    a trainer of its own)."""
     world_model = dataclasses.replace(self.world_model,
                                       network=self.world_model.network.clone(remat=remat))
-    return dataclasses.replace(self, config=config, world_model=world_model,
-                               trainer=_trainer(world_model, config, self.mesh, self.target))
+    return dataclasses.replace(self, config=with_setting(self.config, remat, grad_accum),
+                               world_model=world_model)
 
   @property
   def data_parallel(self) -> int:
@@ -56,23 +64,13 @@ class TrainContext:
     return self.mesh.shape["data"] * self.mesh.shape["fsdp"]
 
 
-def _trainer(world_model: WorldModel, config: ml_collections.ConfigDict, mesh: Mesh,
-             target: fit.Target) -> ShardedTrainer:
-  """The trainer of ``world_model`` on windows of ``data.frames`` frames (the model's
-  ``num_frames`` for a config without data), its attention built for ``target``'s platform."""
-  frames = config.data.frames if "data" in config else world_model.network.num_frames
-  return ShardedTrainer(world_model, config, mesh, tuple(config.frame_shape), frames,
-                        target.platform)
-
-
 def build_context(config: ml_collections.ConfigDict, target: fit.Target,
                   data: TrainData | None = None) -> TrainContext:
-  """The world model of ``config``, the mesh of ``config.mesh`` over the devices of ``target``
-  and the model's trainer (the mesh checked against the model before anything compiles)."""
+  """The world model of ``config`` and the mesh of ``config.mesh`` over the devices of
+  ``target`` (its trainer, which checks the mesh against the model, follows on first use)."""
   world_model = WorldModel.from_config(config)
-  mesh = parallel.make_mesh(tuple(config.mesh), list(target.devices))
-  return TrainContext(config, target, mesh, world_model,
-                      _trainer(world_model, config, mesh, target), data)
+  return TrainContext(config, target, parallel.make_mesh(tuple(config.mesh), list(target.devices)),
+                      world_model, data)
 
 
 def compile_step(context: TrainContext, batch: int | None = None,
@@ -86,8 +84,6 @@ def compile_step(context: TrainContext, batch: int | None = None,
   :func:`wmjax.train.fit.refused_report`."""
   trainer, net, target = context.trainer, context.world_model.network, context.target
   batch = batch or context.config.batch_size
-  parallel.check_batch_divisible(batch, context.mesh, processes=jax.process_count(),
-                                 what="global batch_size")
   start = time.perf_counter()
   frames = jax.ShapeDtypeStruct((batch, trainer.frames) + trainer.frame_shape, jnp.float32,
                                 sharding=trainer.batch_sharding)
@@ -152,10 +148,7 @@ def fit_to_memory(context: TrainContext, log=print) -> tuple[TrainContext, dict]
 
 def set_up(config: ml_collections.ConfigDict, log=print) -> TrainContext:
   """A run's context: its data (checked against the model), the mesh over this job's devices,
-  the world model and the trainer with its step compiled and fitted to the device's memory; the
-  analytic memory estimate is logged first, as a hint beside XLA's figure."""
+  the world model and the trainer with its step compiled and fitted to the device's memory (the
+  compiled step's memory is logged; ``wmjax info`` gives the analytic estimate)."""
   data = build_data(config, evaluation=config.train.eval_every > 0)
-  context = build_context(config, fit.parse_target("local"), data)
-  estimate = memory.estimate(config, context.world_model, jax.device_count())
-  log(f"hint: analytic {memory.describe(estimate)}")
-  return fit_to_memory(context, log)[0]
+  return fit_to_memory(build_context(config, fit.parse_target("local"), data), log)[0]

@@ -137,9 +137,9 @@ def make_train_step(world_model: WorldModel, config: ml_collections.ConfigDict,
 
 
 def check_batch_shapes(world_model: WorldModel, frames_shape, actions_shape, mesh: Mesh,
-                       micro_batches: int = 1) -> None:
-  """ValueError before compilation for a batch the model, the mesh or the number of
-  gradient-accumulation micro-batches cannot take."""
+                       micro_batches: int = 1, processes: int = 1) -> None:
+  """ValueError before compilation for a batch the model, the mesh, the number of
+  gradient-accumulation micro-batches or the ``processes`` feeding it cannot take."""
   net = world_model.network
   if len(frames_shape) != 5 or len(actions_shape) != 3:
     raise ValueError(f"batch must hold frames [B, F, H, W, C] and actions [B, F-1, A], got "
@@ -150,7 +150,8 @@ def check_batch_shapes(world_model: WorldModel, frames_shape, actions_shape, mes
   net.check_inputs(jax.ShapeDtypeStruct(frames_shape, jnp.float32),
                    jax.ShapeDtypeStruct(frames_shape[:2], jnp.float32),
                    jax.ShapeDtypeStruct(actions_shape, jnp.float32))
-  parallel.check_batch_divisible(frames_shape[0], mesh, micro_batches)
+  parallel.check_batch_divisible(frames_shape[0], mesh, micro_batches, processes,
+                                 what="global batch_size")
 
 
 class ShardedTrainer:
@@ -202,9 +203,10 @@ class ShardedTrainer:
   def compile(self, state: Any, frames: Any, actions: Any) -> jax.stages.Compiled:
     """The step compiled ahead of time for this batch (arrays or ``jax.ShapeDtypeStruct``s);
     later :meth:`step` calls with the same batch shapes run it instead of compiling again.
-    ``.memory_analysis()`` gives its per-device argument, output and temporary bytes."""
+    ``.memory_analysis()`` gives its per-device argument, output and temporary bytes; the batch
+    is checked first against the model, the mesh and this job's processes."""
     check_batch_shapes(self.world_model, frames.shape, actions.shape, self.mesh,
-                       self.micro_batches)
+                       self.micro_batches, jax.process_count())
     key = _batch_key(frames, actions)
     if key not in self._compiled:
       with jax.set_mesh(self.mesh), attention.platform_override(self.platform):
