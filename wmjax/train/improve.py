@@ -148,6 +148,7 @@ def improve(policy: LearnedPolicy, rollout: Rollout, score: Score, settings: Imp
   ``check(policy)`` when given."""
   key = jax.random.key(settings.seed)
   history = [{"round": 0, **(check(policy) if check else {})}]
+  _log_round(history[-1])
   memory = []
   for r in range(1, settings.rounds + 1):
     kept, record = collect(policy, rollout, score, settings, jax.random.fold_in(key, r))
@@ -158,8 +159,14 @@ def improve(policy: LearnedPolicy, rollout: Rollout, score: Score, settings: Imp
     policy, losses = fit_policy(policy, batches, settings.fit_steps, settings.learning_rate)
     history.append({"round": r, **record, "decisions": int(len(frames)),
                     "fit_loss": float(losses[-10:].mean()), **(check(policy) if check else {})})
-    log.info("round %d: %s", r, {k: v for k, v in history[-1].items() if k != "true_returns"})
+    _log_round(history[-1])
   return policy, history
+
+
+def _log_round(record: dict) -> None:
+  """One line of a round's record (round 0: the starting policy), without per-episode values."""
+  log.info("round %d: %s", record["round"],
+           {k: v for k, v in record.items() if k not in ("round", "true_returns")})
 
 
 # ----------------------------------------------------------------------------- a task's rollouts
