@@ -57,7 +57,7 @@ def test_bad_batches_fail_before_compilation():
   frames, actions = _batch()
   with pytest.raises(ValueError, match="the data has 7-dim actions but the model expects 4"):
     trainer.step(state, frames, jnp.zeros((8, 3, 7)))
-  with pytest.raises(ValueError, match="global batch 6 is not divisible by the data-parallel size 8"):
+  with pytest.raises(ValueError, match="global batch_size 6 is not divisible by the data-parallel size 8"):
     trainer.step(state, frames[:6], actions[:6])
   with pytest.raises(ValueError, match="mesh \\(3, 1, 1\\) needs 3 devices, 8 are available"):
     make_mesh((3, 1, 1))
