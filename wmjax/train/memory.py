@@ -73,9 +73,3 @@ def estimate(config: ml_collections.ConfigDict, world_model, num_devices: int | 
           "activations_gib": activations / GIB,
           "total_gib": (state + gradients + activations) / GIB}
 
-
-def describe(report: dict) -> str:
-  return (f"memory estimate per device ({report['devices']} devices, mesh {report['mesh']}, "
-          f"local batch {report['local_batch']}, {report['dtype']}, remat={report['remat']}): "
-          f"state {report['state_gib']:.2f} GiB + gradients {report['gradients_gib']:.2f} GiB + "
-          f"activations {report['activations_gib']:.2f} GiB = {report['total_gib']:.2f} GiB")
