@@ -12,13 +12,14 @@ import numpy as np
 import pytest
 import safetensors.numpy
 
-from conftest import jit_apply
+from conftest import ROOT, gridworld_config, gridworld_overrides, jit_apply, one_line_error
 from wmjax.codecs import PatchCodec, PixelCodec, codec_config, make_codec
 from wmjax.config import CodecConfig
-from wmjax.nn.vae import load_diffusers, random_vae
+from wmjax.nn.vae import load_diffusers, random_vae, save_diffusers
+from wmjax.train.data import build_data
 
 torch = pytest.importorskip("torch")
-pytest.importorskip("diffusers")
+diffusers = pytest.importorskip("diffusers")
 
 from vae_fixtures import LAYOUTS, save_random_vae  # noqa: E402  (needs torch and diffusers)
 
@@ -163,3 +164,46 @@ def test_a_random_vae_has_the_parameters_of_its_diffusers_layout(tmp_path, layou
   random_module, random_params = random_vae(layout, (8, 12))
   assert random_module.config == module.config
   assert jax.tree.map(np.shape, random_params) == jax.tree.map(np.shape, params)
+
+
+def test_a_saved_vae_reads_back_in_diffusers_and_wmjax(tmp_path):
+  module, params = random_vae("sdxl", (8, 16), seed=3)
+  save_diffusers(str(tmp_path / "vae"), module.config, params)
+  again, read = load_diffusers(str(tmp_path / "vae"))
+  assert again.config == module.config
+  assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b)), params, read))
+  theirs = diffusers.AutoencoderKL.from_pretrained(str(tmp_path / "vae"))
+  z = np.random.default_rng(1).normal(size=(2, 4, 6, 4)).astype(np.float32)
+  with torch.no_grad():
+    decoded = theirs.decode(torch.from_numpy(z).permute(0, 3, 1, 2)).sample.permute(0, 2, 3, 1)
+  assert _relative_error(jit_apply(module)(params, jnp.asarray(z), method="decode"),
+                         decoded.numpy()) < 1e-4
+
+
+@pytest.mark.slow
+def test_train_codec_fits_frames_into_a_folder_that_codec_vae_reads(data_dir, tmp_path, capsys):
+  from wmjax import cli
+  out = tmp_path / "codec"
+  argv = ["data", "train-codec", "--config", str(ROOT / "configs" / "gridworld.py"), "--out",
+          str(out), "--widths", "8,16", "--steps", "40", "--batch_size", "8", "--train_frames",
+          "96", "--eval_frames", "8", "--learning_rate", "3e-3"]
+  argv += [f"--config.{o}" for o in gridworld_overrides(data_dir)]
+  assert cli.main(argv) == 0
+  report = json.loads((out / "wmjax_codec.json").read_text())
+  assert report["latent_shape"] == [8, 8, 4] and report["recipe"]["widths"] == [8, 16]
+  first, last = report["history"][0], report["history"][-1]
+  assert last["reconstruction"] < 0.5 * first["reconstruction"]
+  assert report["held_out_frames"] == 8 and np.isfinite(report["held_out"]["psnr"])
+  assert (out / "reconstructions.png").stat().st_size > 0
+  codec = make_codec(codec_config(kind="vae", path=str(out)))
+  assert codec.scaling_factor == pytest.approx(report["scaling_factor"])
+  frames = np.random.default_rng(0).uniform(-1, 1, (2, 3, 16, 16, 3)).astype(np.float32)
+  assert codec.encode(frames).shape == (2, 3, 8, 8, 4)
+  on_latents = gridworld_config(data_dir, **{"codec.kind": "'vae'", "codec.path": repr(str(out)),
+                                             "frame_shape": "(8,8,4)", "model.in_channels": 4,
+                                             "diffusion.object_weight": 1.0})
+  with pytest.raises(ValueError, match="object_weight=0 with codec.kind='vae'"):
+    build_data(on_latents)
+  written = (out / "diffusion_pytorch_model.safetensors").read_bytes()
+  one_line_error(capsys, argv, "already holds a codec")  # refused: nothing is replaced
+  assert (out / "diffusion_pytorch_model.safetensors").read_bytes() == written

@@ -62,7 +62,7 @@ def reference_windows(model, data_dir: str, frames: int, limit=None):
                                 mode=model.config.data.normalization,
                                 pad_to=model.config.model.action_dim)
   windows = windows_of(ArrayRecordEpisodes(builder_dir, "test", "pusht"), frames,
-                       tuple(model.config.frame_shape[:2]), limit)
+                       tuple(model.image_shape[:2]), limit)
   return builder_dir, Trajectories.stack(windows, normalize)
 
 

@@ -38,6 +38,19 @@ def encode(args, extra) -> int:
   return 0
 
 
+def train_codec(args, extra) -> int:
+  """Fit a small AutoencoderKL to the frames of the config's dataset and write it as a diffusers
+  folder (with wmjax_codec.json: held-out reconstruction metrics, the latent shape and the
+  --config overrides that train a world model on it; and reconstructions.png). Use it with
+  --config.codec.kind=vae --config.codec.path=OUT."""
+  from wmjax.train.codec import CodecRecipe, train_codec as fit
+  config = common.config_from_args(args, extra)
+  recipe = CodecRecipe(**{f.name: getattr(args, f.name) for f in dataclasses.fields(CodecRecipe)})
+  report = fit(config, args.out, recipe)
+  print(json.dumps({k: report[k] for k in ("held_out", "latent_shape", "overrides")}, indent=2))
+  return 0
+
+
 def stats(args, extra) -> int:
   """Compute (or show the cached) action statistics of a dataset split (cached per split and
   spec: those of train[:95%] are of exactly those episodes)."""
@@ -92,8 +105,15 @@ def import_wpe(args, extra) -> int:
   return 0
 
 
-def _float_tuple(text: str) -> tuple[float, ...]:
-  return tuple(float(part) for part in text.split(",") if part.strip())
+def _tuple_of(kind: type):
+  """Comma-separated numbers -> a tuple of ``kind``."""
+  def parse(text: str) -> tuple:
+    try:
+      return tuple(kind(part) for part in text.split(",") if part.strip())
+    except ValueError:
+      raise argparse.ArgumentTypeError(
+          f"expected comma-separated {kind.__name__}s, got {text!r}") from None
+  return parse
 
 
 def _bool(text: str) -> bool:
@@ -101,6 +121,17 @@ def _bool(text: str) -> bool:
   if value not in ("true", "false", "1", "0"):
     raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
   return value in ("true", "1")
+
+
+def _add_fields(parser, params, what: str) -> None:
+  """One flag per field of the dataclass ``params`` (tuples as comma-separated numbers)."""
+  for field in dataclasses.fields(params):
+    parse = (_tuple_of(type(field.default[0]) if field.default else float)
+             if isinstance(field.default, tuple) else
+             _bool if isinstance(field.default, bool) else type(field.default))
+    shown = ",".join(map(str, field.default)) if isinstance(field.default, tuple) else field.default
+    parser.add_argument(f"--{field.name}", type=parse, default=field.default,
+                        help=f"{what} {field.name} (default {shown})")
 
 
 def _add_prepare(data_sub) -> None:
@@ -116,12 +147,7 @@ def _add_prepare(data_sub) -> None:
     dataset = prepare_sub.add_parser(name, help=f"generate the {name} dataset",
                                      description=prepare.__doc__)
     dataset.add_argument("--data_dir", required=True, help="TFDS data directory to write into")
-    for field in dataclasses.fields(made.params):
-      parse = (_float_tuple if isinstance(field.default, tuple) else
-               _bool if isinstance(field.default, bool) else type(field.default))
-      shown = ",".join(map(str, field.default)) if isinstance(field.default, tuple) else field.default
-      dataset.add_argument(f"--{field.name}", type=parse, default=field.default,
-                           help=f"{name} {field.name} (default {shown})")
+    _add_fields(dataset, made.params, name)
     common.register(dataset, prepare, host_only=True)
 
 
@@ -146,6 +172,14 @@ def add_parser(sub) -> None:
   parser.add_argument("--dataset", default=None, help="the mixture member to encode")
   parser.add_argument("--seed", type=int, default=0, help="for codecs that sample latents")
   common.register(parser, encode, takes_overrides=True)
+
+  from wmjax.train.codec import CodecRecipe
+  parser = data_sub.add_parser("train-codec", help="fit an AutoencoderKL to a dataset's frames",
+                               description=train_codec.__doc__)
+  parser.add_argument("--config", required=True, help=common.CONFIG_HELP)
+  parser.add_argument("--out", required=True, help="output folder (must not hold a codec)")
+  _add_fields(parser, CodecRecipe, "codec")
+  common.register(parser, train_codec, takes_overrides=True)
 
   parser = data_sub.add_parser("stats", help="action statistics, cached as JSON beside the data",
                                description=stats.__doc__)

@@ -344,11 +344,25 @@ def training_noise(process: Process, rng: jax.Array, shape: tuple[int, ...],
 OBJECT_THRESHOLD = 0.05
 
 
+def object_mask(frames: jax.Array, dilation: int) -> jax.Array:
+  """Where frames ``[..., H, W, C]`` show an object: ``[..., H, W, 1]``, 1.0 where a value
+  differs from its frame's median (the background) by more than :data:`OBJECT_THRESHOLD` in some
+  channel, grown by ``dilation`` pixels; 0.0 elsewhere."""
+  median = jnp.median(frames, axis=(-3, -2), keepdims=True)
+  objects = jnp.max(jnp.abs(frames - median), axis=-1, keepdims=True) > OBJECT_THRESHOLD
+  objects = objects.astype(jnp.float32)
+  if dilation:
+    size = 2 * dilation + 1
+    window = (1,) * (frames.ndim - 3) + (size, size, 1)
+    objects = jax.lax.reduce_window(objects, 0.0, jax.lax.max, window, (1,) * frames.ndim, "SAME")
+  return objects
+
+
 def object_weights(x0: jax.Array, object_weight: float, dilation: int) -> jax.Array:
   """Per-value loss weights ``[B, T, H, W, 1]`` of a clean video ``x0 [B, T, H, W, C]``:
-  ``1 + object_weight`` where the *previous* frame shows an object (a value that differs from
-  that frame's median by more than :data:`OBJECT_THRESHOLD`), grown by ``dilation`` pixels so
-  that it covers where an object can move in one frame; 1 elsewhere and on the first frame.
+  ``1 + object_weight`` where the *previous* frame shows an object (:func:`object_mask`), grown
+  by ``dilation`` pixels so that it covers where an object can move in one frame; 1 elsewhere
+  and on the first frame.
 
   A small object (a 3-pixel agent) is a fraction of a percent of an unweighted MSE, which a
   network can leave out and still beat copying the last frame. The weights depend on the
@@ -356,14 +370,7 @@ def object_weights(x0: jax.Array, object_weight: float, dilation: int) -> jax.Ar
   ``autoregressive`` regimes), so they do not move the loss's minimiser, the posterior mean of
   the frame: weights read from the frame being predicted (say, where it differs from the previous
   one) would, and a sampler then draws the object wherever it might be."""
-  previous = x0[:, :-1]
-  median = jnp.median(previous, axis=(2, 3), keepdims=True)
-  objects = jnp.max(jnp.abs(previous - median), axis=-1, keepdims=True) > OBJECT_THRESHOLD
-  objects = objects.astype(jnp.float32)
-  if dilation:
-    size = 2 * dilation + 1
-    objects = jax.lax.reduce_window(objects, 0.0, jax.lax.max, (1, 1, size, size, 1),
-                                    (1,) * 5, "SAME")
+  objects = object_mask(x0[:, :-1], dilation)
   objects = jnp.concatenate([jnp.zeros_like(objects[:, :1]), objects], axis=1)
   return 1.0 + object_weight * objects
 

@@ -66,6 +66,16 @@ class VAEConfig:
     return cls(**values)
 
 
+  def to_diffusers(self) -> dict:
+    """The diffusers config.json dict of this network (what :meth:`from_diffusers` reads)."""
+    blocks = len(self.block_out_channels)
+    config = {"_class_name": "AutoencoderKL", "act_fn": "silu",
+              "down_block_types": ["DownEncoderBlock2D"] * blocks,
+              "up_block_types": ["UpDecoderBlock2D"] * blocks}
+    config.update(dataclasses.asdict(self), block_out_channels=list(self.block_out_channels))
+    return config
+
+
 def _group_norm(config: VAEConfig, name: str) -> nn.GroupNorm:
   return nn.GroupNorm(num_groups=config.norm_num_groups, epsilon=1e-6, use_fast_variance=False,
                       name=name)
@@ -282,6 +292,29 @@ def convert_diffusers_state(state: dict[str, np.ndarray], abstract_params: dict)
     raise ValueError(f"the weights hold {len(state)} key(s) the model has no parameter for, e.g. "
                      f"{sorted(state)[:5]}")
   return flax.traverse_util.unflatten_dict(converted)
+
+
+def save_diffusers(folder: str, config: VAEConfig, params: dict) -> str:
+  """Write an AutoencoderKL as a diffusers folder (``config.json`` +
+  ``diffusion_pytorch_model.safetensors``, torch layouts) that :func:`load_diffusers` and
+  ``diffusers.AutoencoderKL.from_pretrained`` read; returns the folder. ``params`` are the
+  module's variables (``{"params": ...}``)."""
+  from safetensors.numpy import save_file
+
+  os.makedirs(folder, exist_ok=True)
+  state = {}
+  for path, leaf in flax.traverse_util.flatten_dict(params["params"]).items():
+    value = np.asarray(leaf, np.float32)
+    if value.ndim == 4:  # conv [kh, kw, I, O] -> [O, I, kh, kw]
+      value = value.transpose(3, 2, 0, 1)
+    elif value.ndim == 2:  # linear [I, O] -> [O, I]
+      value = value.T
+    state[diffusers_key(path)] = np.ascontiguousarray(value)
+  save_file(state, os.path.join(folder, "diffusion_pytorch_model.safetensors"),
+            metadata={"format": "pt"})
+  with open(os.path.join(folder, "config.json"), "w") as f:
+    json.dump(config.to_diffusers(), f, indent=2)
+  return folder
 
 
 def load_diffusers(path: str, dtype=jnp.float32) -> tuple[AutoencoderKL, dict]:

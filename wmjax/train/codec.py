@@ -1,0 +1,223 @@
+"""Fitting a codec to a dataset's own frames (``wmjax data train-codec``).
+
+A small AutoencoderKL (:mod:`wmjax.nn.vae`) is trained on frames of the config's training split
+and written as a diffusers folder, which ``codec.kind='vae'`` with ``codec.path`` reads like any
+downloaded VAE (and ``wmjax data encode`` pre-encodes with). For frames no published VAE was
+trained on, or too small for one (a 48x48 Push-T render, where an SD VAE's 8x downsampling
+leaves 6x6 latents).
+
+The loss of a frame is the squared error of its reconstruction through a sample of the
+posterior, weighted ``1 + object_weight`` near the frame's objects
+(:func:`wmjax.diffusion.objectives.object_mask`: without it a 3-pixel agent is a rounding error
+of the MSE, and the autoencoder drops it), plus ``kl_weight`` times the KL divergence to a
+standard normal, both per value. After training, the latent means of held-out frames set the
+folder's ``shift_factor`` and ``scaling_factor``, so that the latents a world model diffuses
+have mean 0 and variance 1 (how SD's 0.18215 was chosen).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import time
+from typing import Mapping
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import optax
+
+from wmjax import registry
+from wmjax.config import ConfigError, complete_config
+from wmjax.data.rlds import make_window
+from wmjax.data.sources import ArrayRecordEpisodes, open_dataset
+from wmjax.diffusion.objectives import object_mask
+from wmjax.eval.metrics import frame_metrics
+from wmjax.eval.video import frame_grid, write_png
+from wmjax.frames import to_model, to_uint8
+from wmjax.nn.vae import AutoencoderKL, VAEConfig, save_diffusers
+
+log = logging.getLogger(__name__)
+
+REPORT = "wmjax_codec.json"
+
+
+@dataclasses.dataclass(frozen=True)
+class CodecRecipe:
+  """How a codec is fitted: the network (``widths``: one level each, downsampling by
+  ``2 ** (len(widths) - 1)``; ``latent_channels``) and its training."""
+
+  widths: tuple[int, ...] = (32, 64, 64)
+  latent_channels: int = 4
+  steps: int = 2000
+  batch_size: int = 32
+  learning_rate: float = 1e-3
+  kl_weight: float = 1e-4
+  object_weight: float = 20.0
+  object_dilation: int = 1
+  train_frames: int = 16384  # frames read from the training split, whole episodes at random
+  eval_frames: int = 256  # from the evaluation split: the report and the latent statistics
+  seed: int = 0
+
+  def __post_init__(self):
+    if not self.widths or min(self.widths) < 1:
+      raise ValueError(f"widths must be one or more positive ints, got {self.widths}")
+    for name in ("latent_channels", "steps", "batch_size", "train_frames", "eval_frames"):
+      if getattr(self, name) < 1:
+        raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+    if self.kl_weight < 0 or self.object_weight < 0 or self.object_dilation < 0:
+      raise ValueError("kl_weight, object_weight and object_dilation must be >= 0")
+
+  def network(self) -> VAEConfig:
+    return VAEConfig(block_out_channels=tuple(self.widths), layers_per_block=1,
+                     latent_channels=self.latent_channels,
+                     norm_num_groups=math.gcd(32, *self.widths))
+
+
+@dataclasses.dataclass(frozen=True)
+class Frames:
+  """Frames ``[N, H, W, 3]`` uint8 and their per-step extras ``{name: [N, ...]}``."""
+
+  images: np.ndarray
+  extras: Mapping[str, np.ndarray]
+
+
+def read_frames(episodes: ArrayRecordEpisodes, resolution: tuple[int, int], limit: int,
+                rng: np.random.Generator) -> Frames:
+  """Every frame of episodes drawn at random (without replacement) until ``limit`` frames."""
+  lengths = episodes.lengths()
+  order = rng.permutation(np.flatnonzero(lengths))
+  if not len(order):
+    raise ValueError(f"{episodes.builder_dir} [{episodes.split}] has no episode to read frames from")
+  images, extras, count = [], [], 0
+  for index in order:
+    episode = episodes.episode(int(index))
+    window = make_window(episode, episode.first_step, len(episode), resolution, int(index),
+                         episodes.spec.resize)
+    images.append(window["frames"])
+    extras.append({k: np.asarray(window[k]) for k in episode.extras})
+    count += len(window["frames"])
+    if count >= limit:
+      break
+  stacked = {k: np.concatenate([e[k] for e in extras])[:limit] for k in extras[0]}
+  return Frames(np.concatenate(images)[:limit], stacked)
+
+
+def codec_loss(module: AutoencoderKL, params, frames: jax.Array, rng: jax.Array,
+               recipe: CodecRecipe) -> tuple[jax.Array, dict]:
+  """The loss of a batch of frames ``[B, H, W, 3]`` in [-1, 1] (module doc) and its parts."""
+  mean, logvar = module.apply(params, frames, method="encode")
+  latents = mean + jnp.exp(0.5 * logvar) * jax.random.normal(rng, mean.shape)
+  error = jnp.square(module.apply(params, latents, method="decode") - frames)
+  weights = 1.0 + recipe.object_weight * object_mask(frames, recipe.object_dilation)
+  reconstruction = jnp.mean(error * weights)
+  kl = 0.5 * jnp.mean(jnp.square(mean) + jnp.exp(logvar) - 1.0 - logvar)
+  return reconstruction + recipe.kl_weight * kl, {"reconstruction": reconstruction, "kl": kl,
+                                                  "mse": jnp.mean(error)}
+
+
+def _train_step(module: AutoencoderKL, optimizer: optax.GradientTransformation,
+                recipe: CodecRecipe):
+  @jax.jit
+  def step(params, opt_state, frames, rng):
+    grads, parts = jax.grad(lambda p: codec_loss(module, p, frames, rng, recipe),
+                            has_aux=True)(params)
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state, parts
+
+  return step
+
+
+def _encode_decode(module: AutoencoderKL, params, images: np.ndarray, batch: int):
+  """Latent means and reconstructions (uint8) of ``images [N, H, W, 3]`` uint8."""
+  encode = jax.jit(lambda x: module.apply(params, x, method="encode")[0])
+  decode = jax.jit(lambda z: module.apply(params, z, method="decode"))
+  means, recons = [], []
+  for start in range(0, len(images), batch):
+    mean = encode(to_model(images[start:start + batch]))
+    means.append(np.asarray(mean))
+    recons.append(to_uint8(np.asarray(jnp.clip(decode(mean), -1.0, 1.0))))
+  return np.concatenate(means), np.concatenate(recons)
+
+
+def _check_out(out: str) -> None:
+  if os.path.exists(os.path.join(out, "config.json")):
+    raise FileExistsError(f"{out} already holds a codec (config.json); name another folder")
+
+
+def train_codec(config: ml_collections.ConfigDict, out: str, recipe: CodecRecipe = CodecRecipe()
+                ) -> dict:
+  """Fit an AutoencoderKL to the frames of ``config.data`` (one dataset, read at its
+  resolution) and write it to ``out`` as a diffusers folder with a report (``wmjax_codec.json``:
+  the recipe, the losses, held-out pixel and task metrics of the reconstructions, the latent
+  shape and the config overrides that train a world model on it) and ``reconstructions.png``
+  (held-out frames above their reconstructions). Returns the report."""
+  config = complete_config(config)
+  if config.data.mixture:
+    raise ConfigError("train-codec reads one dataset; the config mixes several (data.mixture)")
+  _check_out(out)
+  network = recipe.network()
+  dataset = open_dataset(config.data)
+  train, held_out = dataset.split(config.data.train_split), dataset.split(config.data.eval_split)
+  resolution = dataset.resolution(train.spec)
+  factor = network.downsample_factor
+  if resolution[0] % factor or resolution[1] % factor:
+    raise ValueError(f"frames {resolution[0]}x{resolution[1]} are not divisible by the codec's "
+                     f"downsampling factor {factor} ({len(recipe.widths)} widths)")
+  rng = np.random.default_rng(recipe.seed)
+  frames = read_frames(train, resolution, recipe.train_frames, rng)
+  checks = read_frames(held_out, resolution, recipe.eval_frames, rng)
+  log.info("codec: %d training frames of %s, %d held out", len(frames.images), train.spec.name,
+           len(checks.images))
+
+  module = AutoencoderKL(network)
+  key = jax.random.key(recipe.seed)
+  params = module.init(key, to_model(frames.images[:1]))
+  schedule = optax.warmup_cosine_decay_schedule(0.0, recipe.learning_rate,
+                                                min(100, recipe.steps // 10 + 1), recipe.steps)
+  optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(schedule))
+  opt_state = optimizer.init(params)
+  step = _train_step(module, optimizer, recipe)
+  history, began = [], time.time()
+  for i in range(recipe.steps):
+    batch = frames.images[rng.integers(0, len(frames.images), recipe.batch_size)]
+    params, opt_state, parts = step(params, opt_state, to_model(batch), jax.random.fold_in(key, i))
+    if (i + 1) % max(1, recipe.steps // 20) == 0 or i + 1 == recipe.steps:
+      parts = {k: float(v) for k, v in parts.items()}
+      if not all(map(math.isfinite, parts.values())):
+        raise FloatingPointError(f"codec training diverged at step {i + 1}: {parts}; "
+                                 f"lower the learning rate")
+      history.append(dict(step=i + 1, seconds=round(time.time() - began, 1), **parts))
+      log.info("codec step %d: %s", i + 1, parts)
+
+  means, recons = _encode_decode(module, params, checks.images, recipe.batch_size)
+  shift = float(means.mean())
+  scale = float(1.0 / max(means.std(), 1e-6))
+  network = dataclasses.replace(network, scaling_factor=scale, shift_factor=shift)
+  save_diffusers(out, network, params)
+  task = registry.frame_metrics_of(held_out.spec.name)
+  metrics = frame_metrics(recons[:, None], checks.images[:, None],
+                          {k: v[:, None] for k, v in checks.extras.items()}, task)
+  latent_shape = (resolution[0] // factor, resolution[1] // factor, recipe.latent_channels)
+  report = {
+      "recipe": dataclasses.asdict(recipe), "dataset": train.spec.name,
+      "frame_shape": list(resolution) + [3], "latent_shape": list(latent_shape),
+      "scaling_factor": scale, "shift_factor": shift,
+      "held_out": {k: float(np.nanmean(v)) for k, v in metrics.items()},
+      "held_out_frames": len(checks.images), "train_frames": len(frames.images),
+      "history": history, "seconds": round(time.time() - began, 1),
+      "overrides": ["--config.codec.kind=vae", f"--config.codec.path={os.path.abspath(out)}",
+                    f"--config.frame_shape=({latent_shape[0]},{latent_shape[1]},{latent_shape[2]})",
+                    f"--config.model.in_channels={latent_shape[2]}",
+                    "--config.sampling.clip_denoised=False", "--config.diffusion.object_weight=0.0"],
+  }
+  with open(os.path.join(out, REPORT), "w") as f:
+    json.dump(report, f, indent=2)
+  shown = min(8, len(checks.images))
+  write_png(os.path.join(out, "reconstructions.png"),
+            frame_grid([checks.images[:shown], recons[:shown]]))
+  return report
