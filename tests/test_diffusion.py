@@ -311,23 +311,6 @@ def test_object_weights_come_from_the_previous_frame():
   assert loss((5, 5), 0.0) == pytest.approx(loss((0, 5), 0.0))
 
 
-def test_object_weights_against_the_batch_background_find_objects_on_a_varying_backdrop():
-  """A backdrop that varies over the frame (as a VAE's latents of a plain one do): against each
-  frame's median every value is an object; against the per-position median of the batch only
-  the objects are, in whichever frame they sit."""
-  backdrop = np.linspace(-1, 1, 36, dtype=np.float32).reshape(6, 6, 1).repeat(3, -1)
-  x0 = np.broadcast_to(backdrop, (4, 2, 6, 6, 3)).copy()
-  for b in range(4):
-    x0[b, 0, b, b] += 2.0  # one object per window, each in another place
-  by_frame = np.asarray(object_weights(jnp.asarray(x0), 9.0, 0))[:, 1, ..., 0]
-  by_batch = np.asarray(object_weights(jnp.asarray(x0), 9.0, 0, "batch"))[:, 1, ..., 0]
-  assert (by_frame == 10).mean() > 0.8
-  for b in range(4):
-    assert by_batch[b, b, b] == 10 and (by_batch[b] == 10).sum() == 1
-  with pytest.raises(ValueError, match="background must be one of"):
-    object_weights(jnp.asarray(x0), 9.0, 0, "pixels")
-
-
 def test_regression_process_is_one_deterministic_step():
   from wmjax.diffusion import Regression, make_process
   process = make_process("regression")

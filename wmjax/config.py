@@ -152,9 +152,6 @@ class DiffusionConfig:
   # objects that an unweighted MSE barely sees
   object_weight: float = 0.0
   object_dilation: int = 0
-  # what an object stands apart from: 'frame' (each frame's median: a plain backdrop in pixels) |
-  # 'batch' (per position, the median over the batch's frames: latents of a plain backdrop)
-  object_background: str = "frame"
 
 
 @dataclasses.dataclass(frozen=True)

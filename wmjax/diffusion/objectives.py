@@ -344,22 +344,11 @@ def training_noise(process: Process, rng: jax.Array, shape: tuple[int, ...],
 OBJECT_THRESHOLD = 0.05
 
 
-BACKGROUNDS = ("frame", "batch")
-
-
-def object_mask(frames: jax.Array, dilation: int, background: str = "frame") -> jax.Array:
-  """Where frames ``[B, ..., H, W, C]`` show an object: ``[B, ..., H, W, 1]``, 1.0 where a value
-  differs from the background by more than :data:`OBJECT_THRESHOLD` in some channel, grown by
-  ``dilation`` pixels; 0.0 elsewhere. The background is each frame's median (``'frame'``: a
-  plain backdrop in pixels) or, per position, the median over all frames given (``'batch'``: a
-  backdrop that varies over the frame, as a VAE's latents of a plain one do, with objects that
-  sit in different places in different frames)."""
-  if background not in BACKGROUNDS:
-    raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
-  if background == "frame":
-    median = jnp.median(frames, axis=(-3, -2), keepdims=True)
-  else:
-    median = jnp.median(frames.reshape((-1,) + frames.shape[-3:]), axis=0)
+def object_mask(frames: jax.Array, dilation: int) -> jax.Array:
+  """Where frames ``[..., H, W, C]`` show an object: ``[..., H, W, 1]``, 1.0 where a value
+  differs from its frame's median (the background) by more than :data:`OBJECT_THRESHOLD` in some
+  channel, grown by ``dilation`` pixels; 0.0 elsewhere."""
+  median = jnp.median(frames, axis=(-3, -2), keepdims=True)
   objects = jnp.max(jnp.abs(frames - median), axis=-1, keepdims=True) > OBJECT_THRESHOLD
   objects = objects.astype(jnp.float32)
   if dilation:
@@ -369,13 +358,11 @@ def object_mask(frames: jax.Array, dilation: int, background: str = "frame") -> 
   return objects
 
 
-def object_weights(x0: jax.Array, object_weight: float, dilation: int,
-                   background: str = "frame") -> jax.Array:
+def object_weights(x0: jax.Array, object_weight: float, dilation: int) -> jax.Array:
   """Per-value loss weights ``[B, T, H, W, 1]`` of a clean video ``x0 [B, T, H, W, C]``:
-  ``1 + object_weight`` where the *previous* frame shows an object (:func:`object_mask`, against
-  ``background``: each frame's median, or per position the median over the batch's previous
-  frames), grown by ``dilation`` pixels so that it covers where an object can move in one frame;
-  1 elsewhere and on the first frame.
+  ``1 + object_weight`` where the *previous* frame shows an object (:func:`object_mask`), grown
+  by ``dilation`` pixels so that it covers where an object can move in one frame; 1 elsewhere
+  and on the first frame.
 
   A small object (a 3-pixel agent) is a fraction of a percent of an unweighted MSE, which a
   network can leave out and still beat copying the last frame. The weights depend on the
@@ -383,26 +370,23 @@ def object_weights(x0: jax.Array, object_weight: float, dilation: int,
   ``autoregressive`` regimes), so they do not move the loss's minimiser, the posterior mean of
   the frame: weights read from the frame being predicted (say, where it differs from the previous
   one) would, and a sampler then draws the object wherever it might be."""
-  objects = object_mask(x0[:, :-1], dilation, background)
+  objects = object_mask(x0[:, :-1], dilation)
   objects = jnp.concatenate([jnp.zeros_like(objects[:, :1]), objects], axis=1)
   return 1.0 + object_weight * objects
 
 
 def masked_loss_sum(denoise_fn: Callable[[jax.Array, jax.Array], jax.Array], process: Process,
                     x0: jax.Array, levels: jax.Array, noise: jax.Array, mask: jax.Array,
-                    object_weight: float = 0.0, object_dilation: int = 0,
-                    object_background: str = "frame") -> tuple[jax.Array, jax.Array]:
+                    object_weight: float = 0.0, object_dilation: int = 0
+                    ) -> tuple[jax.Array, jax.Array]:
   """(sum over the loss frames of the per-frame MSE, per-frame MSE ``[B, T]``) for given levels
   and noise; summing it over slices of a batch and dividing by ``mask.sum()`` of the whole batch
   gives :func:`diffusion_loss` of the whole batch (gradient accumulation). ``object_weight > 0``
-  weights the values near the objects of the previous frame (:func:`object_weights`; with
-  ``object_background='batch'`` the background is the median over the frames of this call, so
-  over each micro-batch under gradient accumulation)."""
+  weights the values near the objects of the previous frame (:func:`object_weights`)."""
   b, t = x0.shape[:2]
   out = denoise_fn(process.add_noise(x0, levels, noise.astype(x0.dtype)), levels)
   err = jnp.square(out.astype(jnp.float32) - process.target(x0, noise.astype(x0.dtype), levels))
   if object_weight:
-    err = err * object_weights(x0.astype(jnp.float32), object_weight, object_dilation,
-                               object_background)
+    err = err * object_weights(x0.astype(jnp.float32), object_weight, object_dilation)
   per_frame = err.reshape(b, t, -1).mean(-1)
   return (per_frame * mask).sum(), per_frame

@@ -68,12 +68,10 @@ def build_data(config: ml_collections.ConfigDict, evaluation: bool = True) -> Tr
   compiles; without ``evaluation`` the evaluation splits are not opened (a run with
   ``train.eval_every=0`` needs none)."""
   codec = make_codec(config.codec)
-  if (config.diffusion.object_weight and config.codec.kind == "vae"
-      and config.diffusion.object_background == "frame"):
-    raise ValueError("diffusion.object_weight with object_background='frame' weighs the loss "
-                     "where a value stands apart from its frame's median, which in a VAE's latents "
-                     "is nearly every value; with codec.kind='vae' set "
-                     "diffusion.object_background='batch' (or diffusion.object_weight=0)")
+  if config.diffusion.object_weight and config.codec.kind == "vae":
+    raise ValueError("diffusion.object_weight weighs the loss where a value stands apart from its "
+                     "frame's median, which in a VAE's latents is nearly every value; set "
+                     "diffusion.object_weight=0 with codec.kind='vae'")
   if config.data.frames > config.model.num_frames:
     raise ValueError(f"data.frames={config.data.frames} exceeds "
                      f"model.num_frames={config.model.num_frames}")
