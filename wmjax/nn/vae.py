@@ -65,7 +65,6 @@ class VAEConfig:
     values.setdefault("shift_factor", config.get("shift_factor"))
     return cls(**values)
 
-
   def to_diffusers(self) -> dict:
     """The diffusers config.json dict of this network (what :meth:`from_diffusers` reads)."""
     blocks = len(self.block_out_channels)
