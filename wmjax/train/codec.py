@@ -32,6 +32,7 @@ import numpy as np
 import optax
 
 from wmjax import registry
+from wmjax.codecs import VAECodec
 from wmjax.config import ConfigError, complete_config
 from wmjax.data.rlds import make_window
 from wmjax.data.sources import ArrayRecordEpisodes, open_dataset
@@ -133,15 +134,11 @@ def _train_step(module: AutoencoderKL, optimizer: optax.GradientTransformation,
 
 
 def _encode_decode(module: AutoencoderKL, params, images: np.ndarray, batch: int):
-  """Latent means and reconstructions (uint8) of ``images [N, H, W, 3]`` uint8."""
-  encode = jax.jit(lambda x: module.apply(params, x, method="encode")[0])
-  decode = jax.jit(lambda z: module.apply(params, z, method="decode"))
-  means, recons = [], []
-  for start in range(0, len(images), batch):
-    mean = encode(to_model(images[start:start + batch]))
-    means.append(np.asarray(mean))
-    recons.append(to_uint8(np.asarray(jnp.clip(decode(mean), -1.0, 1.0))))
-  return np.concatenate(means), np.concatenate(recons)
+  """Latent means and reconstructions (uint8) of ``images [N, H, W, 3]`` uint8, ``batch``
+  frames a call (an unscaled :class:`wmjax.codecs.VAECodec`)."""
+  codec = VAECodec(module, params, scaling_factor=1.0, chunk=batch)
+  means = codec.encode(to_model(images)[None])  # [1, N, h, w, c]: N mapped over in chunks
+  return np.asarray(means)[0], to_uint8(np.asarray(codec.decode(means)))[0]
 
 
 def _check_out(out: str) -> None:
