@@ -451,7 +451,8 @@ def test_experiment_script_runs_its_stages_resumably(experiment, capsys):
   assert (summary["profile"], summary["train_steps"]) == ("cpu", 2)
   assert summary["minutes"] == pytest.approx(sum(summary["stage_minutes"].values()), abs=0.05)
   # the stages before the summary (its own few milliseconds are added after it is written)
-  assert set(summary["stage_minutes"]) == {"data", "classifier", "train", "policy", "plan"}
+  assert set(summary["stage_minutes"]) == {"data", "classifier", "codec", "train", "policy", "plan"}
+  assert "codec_held_out" not in summary  # a pixel profile fits no codec
   assert set(summary["planning"]) == set(summary["planning_lookahead"]) == {"1", "3"}
   assert set(summary["policies"]) == {"push", "push@0.1", "push@0.2", "push@0.5", "stay"}
   assert summary["held_out"] is True and 0.0 <= summary["block_iou_push_end"] <= 1.0

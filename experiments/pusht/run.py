@@ -7,24 +7,29 @@ One script for the whole experiment, in stages that each resume where an earlier
    (``wmjax data prepare pusht``; host CPUs only);
 2. ``classifier``: a success classifier (coverage >= --success_coverage) on the dataset's frames
    (host CPUs only);
-3. ``train``: the world model (``wmjax train --config configs/pusht.py:PROFILE``; resumes from
+3. ``codec``: for a profile that diffuses in the latents of a codec fitted to the data (``latent``):
+   the codec (``wmjax data train-codec``, :data:`CODEC`) in WORKDIR/codec and the dataset encoded
+   with it (``wmjax data encode``) in WORKDIR/latents; nothing for pixel profiles;
+4. ``train``: the world model (``wmjax train --config configs/pusht.py:PROFILE``; resumes from
    its last checkpoint);
-4. ``policy``: five policies (the pusher at four noise levels and a do-nothing policy) in
+5. ``policy``: five policies (the pusher at four noise levels and a do-nothing policy) in
    gym-pusht and closed loop in the world model from the same initial states, scored by the
    coverage read from the imagined frames and by the classifier (``wmjax eval-policy``);
-5. ``plan``: model-predictive control ranking K candidate chunks from the noisy pusher, executed
+6. ``plan``: model-predictive control ranking K candidate chunks from the noisy pusher, executed
    in gym-pusht, one K at a time (``wmjax plan``);
-6. ``summary``: WORKDIR/summary.json (``held_out``: every start state checked against the
+7. ``summary``: WORKDIR/summary.json (``held_out``: every start state checked against the
    training split's; ``pearson`` / ``spearman`` with bootstrap ``*_ci95``, ``ranking_matches``;
    ``block_iou_push_end``, the T's IoU at the end of the ``push`` rollouts; per K the final
    coverage with its paired gain over K = 1 and the chosen plans' imagined value beside their
    value in the simulator, the exploitability gap and its selection effect over K = 1;
-   ``minutes`` of wall time summed over the stages and their resumes, from WORKDIR/timing.json)
+   ``minutes`` of wall time summed over the stages and their resumes, from WORKDIR/timing.json;
+   ``codec_held_out``, a fitted codec's reconstruction metrics on held-out frames)
    and the tables. Policy evaluation and planning start from held-out states (their own random
    streams, :func:`wmjax.data.synthetic.stream`).
 
     python experiments/pusht/run.py --workdir workdirs/pusht                 # CPU, <= 90 minutes
     python experiments/pusht/run.py --workdir /tmp/pusht --smoke             # plumbing, minutes
+    python experiments/pusht/run.py --profile latent --workdir workdirs/pusht-latent
     JAX_PLATFORMS=cpu python experiments/pusht/run.py --profile h100 \\
         --workdir workdirs/pusht-h100 --stage data --stage classifier          # on the host
     python experiments/pusht/run.py --profile h100 --workdir workdirs/pusht-h100 --minutes 9
@@ -43,9 +48,9 @@ exits 3, and the same command continues. Finished stages are skipped: the datase
 classifier are kept, training resumes from its checkpoint, ``policy_eval/policy_eval.json`` and
 each ``plan/K<k>/plan.json`` mark their work done.
 
-Outputs land in WORKDIR: data/, classifier/, model/, policy_eval/ (with videos/: per policy an
-mp4 or GIF and a PNG frame grid, simulator beside world model), plan/, summary.json, results.json
-(all raw results) and timing.json.
+Outputs land in WORKDIR: data/, classifier/, codec/ and latents/ (``latent``), model/,
+policy_eval/ (with videos/: per policy an mp4 or GIF and a PNG frame grid, simulator beside world
+model), plan/, summary.json, results.json (all raw results) and timing.json.
 """
 
 from __future__ import annotations
@@ -59,9 +64,13 @@ import sys
 import threading
 import time
 
-STAGES = ("data", "classifier", "train", "policy", "plan", "summary")
+STAGES = ("data", "classifier", "codec", "train", "policy", "plan", "summary")
 HOST_STAGES = {"data", "classifier", "summary"}  # never need an accelerator
-PROFILES = ("cpu", "h100")
+PROFILES = ("cpu", "latent", "h100")
+# the codec a latent profile's run fits to its data (wmjax.train.codec.CodecRecipe fields; the
+# one screened in RESULTS.md), and the smoke run's
+CODEC = dict(widths=(16, 32, 64), steps=1500)
+SMOKE_CODEC = dict(steps=10, batch_size=8, train_frames=128, eval_frames=8)
 CONFIG = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "configs", "pusht.py")
 SMOKE = ["data.pusht.train_episodes=16", "data.pusht.test_episodes=4", "model.depth=2",
          "model.hidden_size=32", "model.num_heads=2", "model.dtype='float32'",
@@ -176,6 +185,13 @@ class Experiment:
       raise SystemExit(f"--candidates must include 1 (the baseline of the gains), got "
                        f"{args.candidates}")
     self.config = load_config(self.config_file, self.overrides)
+    # a latent profile without a codec named: the run fits one and encodes its data with it
+    self.fits_codec = self.config.codec.kind == "vae" and not (
+        self.config.codec.path or self.config.codec.random_vae)
+    if self.fits_codec:
+      self.overrides += [f"codec.path={self.path('codec')!r}",
+                         f"data.latents_dir={self.path('latents')!r}"]
+      self.config = load_config(self.config_file, self.overrides)
     from wmjax.tasks.pusht.evaluate import actions_for
     self.episodes, self.plan_episodes = args.episodes, args.plan_episodes
     self.steps = args.steps or actions_for(self.config, CONTROL_STEPS)
@@ -251,6 +267,24 @@ class Experiment:
     with open(metrics_file, "w") as f:
       json.dump(metrics, f, indent=2)
 
+  def codec(self, deadline) -> None:
+    if not self.fits_codec:
+      print(f"codec.kind={self.config.codec.kind!r} with nothing to fit: skipped")
+      return
+    from wmjax.train.codec import REPORT, CodecRecipe, train_codec
+    from wmjax.train.encode import encode_latents
+    folder, latents = self.config.codec.path, self.config.data.latents_dir
+    if os.path.exists(os.path.join(folder, REPORT)):
+      print(f"done before: {folder}")
+    else:
+      recipe = CodecRecipe(**{**CODEC, **(SMOKE_CODEC if self.args.smoke else {})})
+      report = train_codec(self.config, folder, recipe)
+      print(f"codec: held out {json.dumps(report['held_out'])}", flush=True)
+    if os.path.exists(latents):  # written whole or not at all
+      print(f"done before: {latents}")
+    else:
+      print(encode_latents(self.config, latents))
+
   def train(self, deadline) -> bool:
     if self._trained_steps() == self.config.train.num_steps:
       print(f"done before: {self.model_dir} holds step {self.config.train.num_steps}")
@@ -300,14 +334,16 @@ class Experiment:
 
   def summary(self, deadline) -> None:
     from wmjax.tasks.pusht.evaluate import summarize
+    from wmjax.train.codec import REPORT
     results = {}
-    for name, file in (("classifier", "classifier/metrics.json"),
-                       ("policy_eval", "policy_eval/policy_eval.json"),
-                       ("plan", "plan/plan.json")):
+    files = {"classifier": "classifier/metrics.json", "policy_eval": "policy_eval/policy_eval.json",
+             "plan": "plan/plan.json", **({"codec": f"codec/{REPORT}"} if self.fits_codec else {})}
+    for name, file in files.items():
       with open(self.path(file)) as f:
         results[name] = json.load(f)
     summary = {"profile": self.args.profile, "config": self.config.name,
                "train_steps": self._trained_steps(), **self._minutes(),
+               **({"codec_held_out": results["codec"]["held_out"]} if self.fits_codec else {}),
                **summarize(results["policy_eval"], results["plan"], "coverage")}
     with open(self.path("results.json"), "w") as f:
       json.dump(results, f, indent=2)

@@ -22,6 +22,7 @@ import json
 import logging
 import math
 import os
+import shutil
 import time
 from typing import Mapping
 
@@ -144,6 +145,8 @@ def _encode_decode(module: AutoencoderKL, params, images: np.ndarray, batch: int
 def _check_out(out: str) -> None:
   if os.path.exists(os.path.join(out, "config.json")):
     raise FileExistsError(f"{out} already holds a codec (config.json); name another folder")
+  if os.path.exists(out) and (not os.path.isdir(out) or os.listdir(out)):
+    raise FileExistsError(f"{out} exists and is not an empty folder; name another folder")
 
 
 def train_codec(config: ml_collections.ConfigDict, out: str, recipe: CodecRecipe = CodecRecipe()
@@ -195,7 +198,9 @@ def train_codec(config: ml_collections.ConfigDict, out: str, recipe: CodecRecipe
   shift = float(means.mean())
   scale = float(1.0 / max(means.std(), 1e-6))
   network = dataclasses.replace(network, scaling_factor=scale, shift_factor=shift)
-  save_diffusers(out, network, params)
+  tmp = out.rstrip("/") + ".incomplete"  # renamed to ``out`` when whole: a stopped fit leaves none
+  shutil.rmtree(tmp, ignore_errors=True)
+  save_diffusers(tmp, network, params)
   task = registry.frame_metrics_of(held_out.spec.name)
   metrics = frame_metrics(recons[:, None], checks.images[:, None],
                           {k: v[:, None] for k, v in checks.extras.items()}, task)
@@ -212,9 +217,12 @@ def train_codec(config: ml_collections.ConfigDict, out: str, recipe: CodecRecipe
                     f"--config.model.in_channels={latent_shape[2]}",
                     "--config.sampling.clip_denoised=False", "--config.diffusion.object_weight=0.0"],
   }
-  with open(os.path.join(out, REPORT), "w") as f:
+  with open(os.path.join(tmp, REPORT), "w") as f:
     json.dump(report, f, indent=2)
   shown = min(8, len(checks.images))
-  write_png(os.path.join(out, "reconstructions.png"),
+  write_png(os.path.join(tmp, "reconstructions.png"),
             frame_grid([checks.images[:shown], recons[:shown]]))
+  if os.path.isdir(out):
+    os.rmdir(out)  # empty (checked above)
+  os.rename(tmp, out)
   return report
