@@ -220,7 +220,8 @@ def test_action_repeat_is_a_frame_per_held_action():
 
 @pytest.mark.unit
 def test_config_profiles():
-  cpu, h100 = (load_config(str(ROOT / "configs" / f"pusht.py:{p}")) for p in ("cpu", "h100"))
+  cpu, latent, h100 = (load_config(str(ROOT / "configs" / f"pusht.py:{p}"))
+                       for p in ("cpu", "latent", "h100"))
   assert (cpu.model.depth, cpu.batch_size, cpu.model.dtype) == (6, 16, "float32")
   for profile in (cpu, h100):  # one recipe: the next frame from two clean ones, in 8 DDIM steps
     assert (profile.model.num_frames, profile.rollout.context, profile.rollout.horizon) == (3, 2, 1)
@@ -231,7 +232,13 @@ def test_config_profiles():
     assert profile.data.pusht.mix == (0.5, 0.25, 0.25) and profile.model.action_place == (0, 1)
   assert (h100.model.depth, h100.model.hidden_size, h100.batch_size) == (12, 384, 64)
   assert (h100.model.dtype, h100.train.num_steps) == ("bfloat16", 3000)
-  assert h100.data.pusht == cpu.data.pusht  # one dataset: prepared once, carried to a GPU
+  assert h100.data.pusht == cpu.data.pusht == latent.data.pusht  # one dataset, prepared once
+  # the cpu recipe in 12x12x4 latents of a codec fitted to the data: 1x1 patches (144 tokens)
+  assert (latent.codec.kind, latent.codec.path, latent.data.latents_dir) == ("vae", "", "")
+  assert (latent.frame_shape, latent.model.patch_size, latent.model.in_channels) == ((12, 12, 4), 1, 4)
+  assert latent.diffusion.object_weight == 0.0 and not latent.sampling.clip_denoised
+  assert latent.model.depth == cpu.model.depth
+  assert latent.sampling.to_dict() == cpu.sampling.to_dict() | {"clip_denoised": False}
   assert load_config(str(ROOT / "configs" / "pusht.py")).to_dict() == cpu.to_dict()
   with pytest.raises(ValueError, match="profile must be one of"):
     load_config(str(ROOT / "configs" / "pusht.py:tpu"))
@@ -490,6 +497,36 @@ def test_h100_profile_trains_one_step(experiment, tmp_path):
   saved = json.loads((tmp_path / "config.json").read_text())
   assert (saved["name"], saved["model"]["dtype"]) == ("pusht-h100", "bfloat16")
   assert json.loads((tmp_path / "metrics.json").read_text()) == {"step": 1}
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_latent_profile_fits_a_codec_to_its_data_and_trains_on_its_latents(pusht_experiment,
+                                                                           tmp_path, capsys):
+  """run.py --profile latent: the codec stage fits a codec to the run's frames (4x smaller sides)
+  and encodes the data with it; training reads those latents through the codec the stage wrote;
+  a second run finds both done and changes nothing."""
+  shutil.copytree(pusht_experiment / "data", tmp_path / "data")
+  tiny = [a for a in PUSHT_EXPERIMENT_TINY if not a.startswith("--config.frame_shape")]
+  args = (["--workdir", str(tmp_path), "--profile", "latent", "--stage", "codec", "--stage", "train",
+           "--config.frame_shape=(4,4,4)"] + tiny)
+  run = pusht_experiment_script().main
+  assert run(args) == 0
+  report = json.loads((tmp_path / "codec" / "wmjax_codec.json").read_text())
+  assert report["latent_shape"] == [4, 4, 4] and report["recipe"]["widths"] == [16, 32, 64]
+  assert not (tmp_path / "codec.incomplete").exists()
+  latents = json.loads((tmp_path / "latents" / "wmjax_latents.json").read_text())
+  assert latents["latent_shape"] == [4, 4, 4] and set(latents["splits"]) == {"train", "test"}
+  saved = json.loads((tmp_path / "model" / "config.json").read_text())
+  assert (saved["name"], saved["codec"]["kind"]) == ("pusht-latent", "vae")
+  assert saved["codec"]["path"] == str(tmp_path / "codec")
+  assert saved["data"]["latents_dir"] == str(tmp_path / "latents")
+  assert json.loads((tmp_path / "model" / "metrics.json").read_text()) == {"step": 2}
+  weights = (tmp_path / "codec" / "diffusion_pytorch_model.safetensors").read_bytes()
+  capsys.readouterr()
+  assert run(args) == 0
+  assert capsys.readouterr().out.count("done before") == 3  # codec, latents, model
+  assert (tmp_path / "codec" / "diffusion_pytorch_model.safetensors").read_bytes() == weights
 
 
 @pytest.mark.slow

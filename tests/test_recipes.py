@@ -67,6 +67,8 @@ TRAINED_ELSEWHERE = {
     "gridworld.py": "test_train_loop.py, test_overfit.py and the quickstart",
     "pusht.py:cpu": "test_pusht.py (the experiment fixture trains it)",
     "pusht.py:h100": "test_pusht.py::test_h100_profile_trains_one_step",
+    "pusht.py:latent": "test_pusht.py::test_latent_profile_fits_a_codec_to_its_data_and_trains_on_"
+                       "its_latents",
     "rlds.py": "test_data_specs.py::test_own_lerobot_data_from_import_to_evaluation (inspect's "
                "command)",
 }

@@ -207,3 +207,7 @@ def test_train_codec_fits_frames_into_a_folder_that_codec_vae_reads(data_dir, tm
   written = (out / "diffusion_pytorch_model.safetensors").read_bytes()
   one_line_error(capsys, argv, "already holds a codec")  # refused: nothing is replaced
   assert (out / "diffusion_pytorch_model.safetensors").read_bytes() == written
+  assert not (tmp_path / "codec.incomplete").exists()  # written there, renamed when whole
+  (tmp_path / "other").mkdir()
+  (tmp_path / "other" / "notes.txt").write_text("mine")
+  one_line_error(capsys, argv[:5] + [str(tmp_path / "other")] + argv[6:], "is not an empty folder")
