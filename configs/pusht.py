@@ -110,4 +110,5 @@ def get_config(profile: str = "cpu") -> ml_collections.ConfigDict:
     config.diffusion.object_weight = 0.0
     config.sampling.clip_denoised = False
     config.optim.total_steps = config.train.num_steps = config.train.eval_every = 1500
+    config.train.checkpoint_every = 375  # four checkpoints: the ranking over training
   return config
