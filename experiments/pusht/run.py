@@ -271,19 +271,21 @@ class Experiment:
     if not self.fits_codec:
       print(f"codec.kind={self.config.codec.kind!r} with nothing to fit: skipped")
       return
-    from wmjax.train.codec import REPORT, CodecRecipe, train_codec
-    from wmjax.train.encode import encode_latents
+    from wmjax.train.codec import REPORT
     folder, latents = self.config.codec.path, self.config.data.latents_dir
-    if os.path.exists(os.path.join(folder, REPORT)):
+    if os.path.exists(os.path.join(folder, REPORT)):  # the folder is written whole or not at all
       print(f"done before: {folder}")
     else:
-      recipe = CodecRecipe(**{**CODEC, **(SMOKE_CODEC if self.args.smoke else {})})
-      report = train_codec(self.config, folder, recipe)
-      print(f"codec: held out {json.dumps(report['held_out'])}", flush=True)
-    if os.path.exists(latents):  # written whole or not at all
+      recipe = {**CODEC, **(SMOKE_CODEC if self.args.smoke else {})}
+      flags = [f"--{k}={','.join(map(str, v)) if isinstance(v, tuple) else v}"
+               for k, v in recipe.items()]
+      self._check(self.wmjax("data", "train-codec", "--config", self.config_file, "--out", folder,
+                             *flags, overrides=self.overrides), "data train-codec")
+    if os.path.exists(latents):  # likewise
       print(f"done before: {latents}")
     else:
-      print(encode_latents(self.config, latents))
+      self._check(self.wmjax("data", "encode", "--config", self.config_file, "--out", latents,
+                             overrides=self.overrides), "data encode")
 
   def train(self, deadline) -> bool:
     if self._trained_steps() == self.config.train.num_steps:
