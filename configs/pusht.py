@@ -33,9 +33,10 @@ Profiles (``configs/pusht.py:PROFILE``):
   (latents are not in [-1, 1]), no object weights (in latents every value stands apart from its
   frame's median), 1500 steps. ``codec.path`` (the codec's folder) and ``data.latents_dir`` (the
   dataset pre-encoded by ``wmjax data encode``) are left empty: ``experiments/pusht/run.py
-  --profile latent`` fits and fills both, or give them as overrides. Screened on 2026-11-27 it
-  ranked the five policies best of any 2-core model and its pushed T was the first to beat
-  copying the last frame, but as a blob, and its codec loses the agent in about a fifth of frames.
+  --profile latent`` fits and fills both, or give them as overrides. The whole experiment takes
+  68 minutes on 2 CPU cores (2026-11-28): it ranks the policies about as well as ``cpu`` (Pearson
+  0.915, one training seed) at half the training, its pushed T turns into a blob rather than
+  fragments, planning in it gains nothing, and its codec loses the agent in a fifth of frames.
 - ``h100``: the same recipe and data at 32.5M parameters (depth 12, width 384, 6 heads) in
   bfloat16 with the fastest attention the GPU has, 3000 steps of batch 64 at learning rate 8e-4,
   checkpointed every 500 steps so that a run cut by a job limit resumes. Two training seeds ran

@@ -177,7 +177,7 @@ def add_parser(sub) -> None:
   parser = data_sub.add_parser("train-codec", help="fit an AutoencoderKL to a dataset's frames",
                                description=train_codec.__doc__)
   parser.add_argument("--config", required=True, help=common.CONFIG_HELP)
-  parser.add_argument("--out", required=True, help="output folder (must not hold a codec)")
+  parser.add_argument("--out", required=True, help="output folder (new or empty)")
   _add_fields(parser, CodecRecipe, "codec")
   common.register(parser, train_codec, takes_overrides=True)
 

@@ -155,7 +155,8 @@ def train_codec(config: ml_collections.ConfigDict, out: str, recipe: CodecRecipe
   resolution) and write it to ``out`` as a diffusers folder with a report (``wmjax_codec.json``:
   the recipe, the losses, held-out pixel and task metrics of the reconstructions, the latent
   shape and the config overrides that train a world model on it) and ``reconstructions.png``
-  (held-out frames above their reconstructions). Returns the report."""
+  (held-out frames above their reconstructions). ``out`` must be new or an empty folder; it is
+  written as ``out.incomplete`` and renamed when whole. Returns the report."""
   config = complete_config(config)
   if config.data.mixture:
     raise ConfigError("train-codec reads one dataset; the config mixes several (data.mixture)")
