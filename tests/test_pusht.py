@@ -509,7 +509,7 @@ def test_latent_profile_fits_a_codec_to_its_data_and_trains_on_its_latents(pusht
   shutil.copytree(pusht_experiment / "data", tmp_path / "data")
   tiny = [a for a in PUSHT_EXPERIMENT_TINY if not a.startswith("--config.frame_shape")]
   args = (["--workdir", str(tmp_path), "--profile", "latent", "--stage", "codec", "--stage", "train",
-           "--config.frame_shape=(4,4,4)"] + tiny)
+           "--config.frame_shape=(4,4,4)", "--config.train.auto_fit=False"] + tiny)
   run = pusht_experiment_script().main
   assert run(args) == 0
   report = json.loads((tmp_path / "codec" / "wmjax_codec.json").read_text())
