@@ -269,7 +269,9 @@ class Experiment:
 
   def codec(self, deadline) -> None:
     if not self.fits_codec:
-      print(f"codec.kind={self.config.codec.kind!r} with nothing to fit: skipped")
+      given = self.config.codec.path or self.config.codec.random_vae
+      print(f"nothing to fit: codec.kind={self.config.codec.kind!r}"
+            + (f", given {given!r}" if given else ""))
       return
     from wmjax.train.codec import REPORT
     folder, latents = self.config.codec.path, self.config.data.latents_dir
