@@ -181,7 +181,8 @@ def test_a_saved_vae_reads_back_in_diffusers_and_wmjax(tmp_path):
 
 
 @pytest.mark.slow
-def test_train_codec_fits_frames_into_a_folder_that_codec_vae_reads(data_dir, tmp_path, capsys):
+def test_train_codec_fits_frames_into_a_folder_that_codec_vae_reads(data_dir, tmp_path, capsys,
+                                                                     caplog):
   from wmjax import cli
   out = tmp_path / "codec"
   argv = ["data", "train-codec", "--config", str(ROOT / "configs" / "gridworld.py"), "--out",
@@ -189,6 +190,7 @@ def test_train_codec_fits_frames_into_a_folder_that_codec_vae_reads(data_dir, tm
           "96", "--eval_frames", "8", "--learning_rate", "3e-3"]
   argv += [f"--config.{o}" for o in gridworld_overrides(data_dir)]
   assert cli.main(argv) == 0
+  assert "codec step 40:" in caplog.text  # progress shown, though the root logger is at WARNING
   report = json.loads((out / "wmjax_codec.json").read_text())
   assert report["latent_shape"] == [8, 8, 4] and report["recipe"]["widths"] == [8, 16]
   first, last = report["history"][0], report["history"][-1]

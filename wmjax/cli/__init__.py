@@ -33,6 +33,8 @@ info, compile and the data commands but encode run JAX on the CPU only.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
 import os
 import sys
 
@@ -63,6 +65,27 @@ def build_parser() -> argparse.ArgumentParser:
 USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, ImportError)
 
 
+@contextlib.contextmanager
+def _library_log_shown():
+  """While a command runs, the library's own messages from INFO up (a codec's or a policy's fitting
+  progress, skipped episodes) are shown: through the handlers already installed (a library that
+  configured the root logger, or the caller), else on stderr as ``wmjax.module: message``."""
+  logger = logging.getLogger("wmjax")
+  level = logger.level
+  handler = None
+  if not logger.hasHandlers():
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
+    logger.addHandler(handler)
+  logger.setLevel(logging.INFO)
+  try:
+    yield
+  finally:
+    if handler is not None:
+      logger.removeHandler(handler)
+    logger.setLevel(level)
+
+
 def main(argv: list[str] | None = None) -> int:
   """Run one ``wmjax`` command; its exit status. A config error or bad input (:data:`USER_ERRORS`)
   exits 2 and a run error (a condition the message explains) 1, each with one line on stderr
@@ -84,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
   from wmjax.config import ConfigError
   from wmjax.errors import RunError
   try:
-    return args.func(args, extra)
+    with _library_log_shown():
+      return args.func(args, extra)
   except (ConfigError, RunError) as e:
     print(f"{args.command_parser.prog}: {e}", file=sys.stderr)
     return 2 if isinstance(e, ConfigError) else 1
