@@ -2,6 +2,7 @@
 functions, and `wmjax eval-policy` / `wmjax plan` end to end on a tiny model."""
 
 import dataclasses
+import importlib.util
 import json
 import os
 import shutil
@@ -574,3 +575,31 @@ def test_push_task_improves_a_cloned_policy_in_the_world_model_checked_in_gym_pu
   for record in report["rounds"]:
     assert 0.0 <= record["true_value"] <= 1.0 and 0.0 <= record["imagined_value"] <= 1.0
     assert record["gap"] == pytest.approx(record["imagined_value"] - record["true_value"])
+
+
+@pytest.mark.unit
+def test_planner_scores_tell_sampling_noise_from_model_error():
+  """``experiments/pusht/planner_scores.py``'s analysis: a model whose scores are the truth plus
+  sampling noise over-values its choice on the sample it chose on but not on fresh samples, and
+  averaging its samples lifts the validity; a model with a fixed error per candidate over-values
+  its choice on fresh samples as much."""
+  spec = importlib.util.spec_from_file_location("planner_scores",
+                                                ROOT / "experiments/pusht/planner_scores.py")
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  rng = np.random.default_rng(0)
+  decisions, k, s = 400, 10, 3
+  true = rng.normal(size=(decisions, k))
+  episodes = np.arange(decisions) // 4
+  noisy = module.analyse(true[..., None] + rng.normal(size=(decisions, k, s)), true, episodes)
+  assert noisy["reliability"] == pytest.approx(0.5, abs=0.05)
+  assert noisy["validity"]["mean_of_samples"] > noisy["validity"]["one_sample"] + 0.1
+  assert noisy["overvalued"]["chosen_sample"]["mean"] > 0.5
+  assert abs(noisy["overvalued"]["fresh_sample"]["mean"]) < 0.1
+  assert noisy["mean_of_samples_minus_one_sample"]["mean"] > 0
+  wrong = true + rng.normal(size=(decisions, k))  # the same error on every sample
+  biased = module.analyse(np.repeat(wrong[..., None], s, -1), true, episodes)
+  assert biased["reliability"] == pytest.approx(1.0)
+  chosen, fresh = biased["overvalued"]["chosen_sample"], biased["overvalued"]["fresh_sample"]
+  assert fresh["mean"] == pytest.approx(chosen["mean"]) and fresh["mean"] > 0.5
+  assert biased["gain"]["oracle"]["mean"] > biased["gain"]["one_sample"]["mean"] > 0
