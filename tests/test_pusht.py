@@ -234,9 +234,9 @@ def test_config_profiles():
   assert (h100.model.depth, h100.model.hidden_size, h100.batch_size) == (12, 384, 64)
   assert (h100.model.dtype, h100.train.num_steps) == ("bfloat16", 3000)
   assert h100.data.pusht == cpu.data.pusht == latent.data.pusht  # one dataset, prepared once
-  # the cpu recipe in 12x12x4 latents of a codec fitted to the data: 1x1 patches (144 tokens)
+  # the cpu recipe in 12x12x8 latents of a codec fitted to the data: 1x1 patches (144 tokens)
   assert (latent.codec.kind, latent.codec.path, latent.data.latents_dir) == ("vae", "", "")
-  assert (latent.frame_shape, latent.model.patch_size, latent.model.in_channels) == ((12, 12, 4), 1, 4)
+  assert (latent.frame_shape, latent.model.patch_size, latent.model.in_channels) == ((12, 12, 8), 1, 8)
   assert latent.diffusion.object_weight == 0.0 and not latent.sampling.clip_denoised
   assert latent.model.depth == cpu.model.depth
   assert latent.sampling.to_dict() == cpu.sampling.to_dict() | {"clip_denoised": False}
@@ -510,14 +510,15 @@ def test_latent_profile_fits_a_codec_to_its_data_and_trains_on_its_latents(pusht
   shutil.copytree(pusht_experiment / "data", tmp_path / "data")
   tiny = [a for a in PUSHT_EXPERIMENT_TINY if not a.startswith("--config.frame_shape")]
   args = (["--workdir", str(tmp_path), "--profile", "latent", "--stage", "codec", "--stage", "train",
-           "--config.frame_shape=(4,4,4)", "--config.train.auto_fit=False"] + tiny)
+           "--config.frame_shape=(4,4,8)", "--config.train.auto_fit=False"] + tiny)
   run = pusht_experiment_script().main
   assert run(args) == 0
   report = json.loads((tmp_path / "codec" / "wmjax_codec.json").read_text())
-  assert report["latent_shape"] == [4, 4, 4] and report["recipe"]["widths"] == [16, 32, 64]
+  # the codec's latents are the config's frame_shape: 4x smaller sides, its channels
+  assert report["latent_shape"] == [4, 4, 8] and report["recipe"]["widths"] == [16, 32, 64]
   assert not (tmp_path / "codec.incomplete").exists()
   latents = json.loads((tmp_path / "latents" / "wmjax_latents.json").read_text())
-  assert latents["latent_shape"] == [4, 4, 4] and set(latents["splits"]) == {"train", "test"}
+  assert latents["latent_shape"] == [4, 4, 8] and set(latents["splits"]) == {"train", "test"}
   saved = json.loads((tmp_path / "model" / "config.json").read_text())
   assert (saved["name"], saved["codec"]["kind"]) == ("pusht-latent", "vae")
   assert saved["codec"]["path"] == str(tmp_path / "codec")

@@ -68,7 +68,8 @@ STAGES = ("data", "classifier", "codec", "train", "policy", "plan", "summary")
 HOST_STAGES = {"data", "classifier", "summary"}  # never need an accelerator
 PROFILES = ("cpu", "latent", "h100")
 # the codec a latent profile's run fits to its data (wmjax.train.codec.CodecRecipe fields; the
-# one screened in RESULTS.md), and the smoke run's
+# one screened in RESULTS.md; its latent channels are the config's frame_shape[-1]), and the
+# smoke run's
 CODEC = dict(widths=(16, 32, 64), steps=1500)
 SMOKE_CODEC = dict(steps=10, batch_size=8, train_frames=128, eval_frames=8)
 CONFIG = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "configs", "pusht.py")
@@ -278,7 +279,8 @@ class Experiment:
     if os.path.exists(os.path.join(folder, REPORT)):  # the folder is written whole or not at all
       print(f"done before: {folder}")
     else:
-      recipe = {**CODEC, **(SMOKE_CODEC if self.args.smoke else {})}
+      recipe = {**CODEC, "latent_channels": self.config.frame_shape[-1],
+                **(SMOKE_CODEC if self.args.smoke else {})}
       flags = [f"--{k}={','.join(map(str, v)) if isinstance(v, tuple) else v}"
                for k, v in recipe.items()]
       self._check(self.wmjax("data", "train-codec", "--config", self.config_file, "--out", folder,
