@@ -31,8 +31,9 @@ Profiles (``configs/pusht.py:PROFILE``):
   the run's own Push-T frames (``wmjax data train-codec --widths 16,32,64 --steps 1500
   --latent_channels 8``, 48x48x3 to 12x12x8) instead of in pixels: 1x1 patches (the same 144
   tokens a frame), no clipping of x0 (latents are not in [-1, 1]), no object weights (in latents
-  every value stands apart from its frame's median), 1500 steps. ``codec.path`` (the codec's folder) and ``data.latents_dir`` (the
-  dataset pre-encoded by ``wmjax data encode``) are left empty: ``experiments/pusht/run.py
+  every value stands apart from its frame's median), 1500 steps. ``codec.path`` (the codec's
+  folder) and ``data.latents_dir`` (the dataset pre-encoded by ``wmjax data encode``) are left
+  empty: ``experiments/pusht/run.py
   --profile latent`` fits and fills both, or give them as overrides. With 4 latent channels the
   whole experiment took 68 minutes on 2 CPU cores (2026-11-28; Pearson 0.915 and 0.868 over two
   training seeds, Spearman 0.9, the codec losing the agent in a fifth of frames); 8 channels keep
