@@ -33,9 +33,8 @@ Profiles (``configs/pusht.py:PROFILE``):
   tokens a frame), no clipping of x0 (latents are not in [-1, 1]), no object weights (in latents
   every value stands apart from its frame's median), 1500 steps. ``codec.path`` (the codec's
   folder) and ``data.latents_dir`` (the dataset pre-encoded by ``wmjax data encode``) are left
-  empty: ``experiments/pusht/run.py
-  --profile latent`` fits and fills both, or give them as overrides. With 4 latent channels the
-  whole experiment took 68 minutes on 2 CPU cores (2026-11-28; Pearson 0.915 and 0.868 over two
+  empty: ``experiments/pusht/run.py --profile latent`` fits and fills both, or give them as
+  overrides. With 4 latent channels the whole experiment took 68 minutes on 2 CPU cores (2026-11-28; Pearson 0.915 and 0.868 over two
   training seeds, Spearman 0.9, the codec losing the agent in a fifth of frames); 8 channels keep
   the agent (found in 93 % of frames instead of 83 %) and rank all five policies right in two
   training seeds (Pearson 0.926 and 0.987, Spearman 1.0). Its pushed T still turns into a blob,
