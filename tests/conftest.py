@@ -155,9 +155,10 @@ def data_dir(tmp_path_factory):
                     lambda path: gridworld.prepare(str(path), GRIDWORLD_DATA))
 
 
-def pusht_experiment_script():
-  """``experiments/pusht/run.py`` as a module."""
-  spec = importlib.util.spec_from_file_location("pusht_run", ROOT / "experiments/pusht/run.py")
+def pusht_experiment_script(name: str = "run"):
+  """``experiments/pusht/NAME.py`` as a module."""
+  spec = importlib.util.spec_from_file_location(f"pusht_{name}",
+                                                ROOT / f"experiments/pusht/{name}.py")
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   return module

@@ -2,7 +2,6 @@
 functions, and `wmjax eval-policy` / `wmjax plan` end to end on a tiny model."""
 
 import dataclasses
-import importlib.util
 import json
 import os
 import shutil
@@ -584,10 +583,7 @@ def test_planner_scores_tell_sampling_noise_from_model_error():
   sampling noise over-values its choice on the sample it chose on but not on fresh samples, and
   averaging its samples lifts the validity; a model with a fixed error per candidate over-values
   its choice on fresh samples as much."""
-  spec = importlib.util.spec_from_file_location("planner_scores",
-                                                ROOT / "experiments/pusht/planner_scores.py")
-  module = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(module)
+  module = pusht_experiment_script("planner_scores")
   rng = np.random.default_rng(0)
   decisions, k, s = 400, 10, 3
   true = rng.normal(size=(decisions, k))

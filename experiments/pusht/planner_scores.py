@@ -117,7 +117,7 @@ def measure(workdir: str, step: int | None, episodes: int, candidates: int, samp
   def scores(videos):  # [B, K, T, H, W, 3] -> [2 (value, block), B, K]
     b, k = videos.shape[:2]
     last = videos.reshape((b * k,) + videos.shape[2:])
-    block = (np.asarray(pusht.classify_pixels(to_model(last[:, -1]))) == pusht.BLOCK) & goal
+    block = np.asarray(pusht.object_masks(to_model(last[:, -1]))[0]) & goal
     return np.stack([np.asarray(value(last, INSTRUCTION)), block.sum((1, 2)) / goal.sum()]
                     ).reshape(2, b, k)
 
