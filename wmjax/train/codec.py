@@ -161,23 +161,49 @@ def train_codec(config: ml_collections.ConfigDict, out: str, recipe: CodecRecipe
   if config.data.mixture:
     raise ConfigError("train-codec reads one dataset; the config mixes several (data.mixture)")
   _check_out(out)
-  network = recipe.network()
+  rng = np.random.default_rng(recipe.seed)
+  frames, checks, task = _training_frames(config, recipe, rng)
+  began = time.time()
+  module = AutoencoderKL(recipe.network())
+  params, history = fit_codec(module, frames.images, recipe, rng)
+  means, recons = _encode_decode(module, params, checks.images, recipe.batch_size)
+  # the folder's shift and scale give the latents a world model diffuses mean 0 and variance 1
+  network = dataclasses.replace(module.config, shift_factor=float(means.mean()),
+                                scaling_factor=float(1.0 / max(means.std(), 1e-6)))
+  metrics = frame_metrics(recons[:, None], checks.images[:, None],
+                          {k: v[:, None] for k, v in checks.extras.items()},
+                          registry.frame_metrics_of(task))
+  report = _report(recipe, network, out, frames, checks, task, metrics, history)
+  report["seconds"] = round(time.time() - began, 1)
+  _write_codec(out, network, params, report, checks.images, recons)
+  return report
+
+
+def _training_frames(config: ml_collections.ConfigDict, recipe: CodecRecipe,
+                     rng: np.random.Generator) -> tuple[Frames, Frames, str]:
+  """(frames of the training split, held-out frames of the evaluation split, the dataset's name)
+  of ``config.data`` at its resolution, which the codec's downsampling must divide."""
   dataset = open_dataset(config.data)
   train, held_out = dataset.split(config.data.train_split), dataset.split(config.data.eval_split)
   resolution = dataset.resolution(train.spec)
-  factor = network.downsample_factor
+  factor = recipe.network().downsample_factor
   if resolution[0] % factor or resolution[1] % factor:
     raise ValueError(f"frames {resolution[0]}x{resolution[1]} are not divisible by the codec's "
                      f"downsampling factor {factor} ({len(recipe.widths)} widths)")
-  rng = np.random.default_rng(recipe.seed)
   frames = read_frames(train, resolution, recipe.train_frames, rng)
   checks = read_frames(held_out, resolution, recipe.eval_frames, rng)
   log.info("codec: %d training frames of %s, %d held out", len(frames.images), train.spec.name,
            len(checks.images))
+  return frames, checks, held_out.spec.name
 
-  module = AutoencoderKL(network)
+
+def fit_codec(module: AutoencoderKL, images: np.ndarray, recipe: CodecRecipe,
+              rng: np.random.Generator) -> tuple[dict, list[dict]]:
+  """(parameters, history) of ``module`` fitted to frames ``images [N, H, W, 3]`` uint8 in
+  ``recipe.steps`` steps of ``recipe.batch_size`` frames drawn with ``rng``; the history holds
+  the loss parts at every twentieth of the steps. A non-finite loss stops it with an error."""
   key = jax.random.key(recipe.seed)
-  params = module.init(key, to_model(frames.images[:1]))
+  params = module.init(key, to_model(images[:1]))
   schedule = optax.warmup_cosine_decay_schedule(0.0, recipe.learning_rate,
                                                 min(100, recipe.steps // 10 + 1), recipe.steps)
   optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(schedule))
@@ -185,7 +211,7 @@ def train_codec(config: ml_collections.ConfigDict, out: str, recipe: CodecRecipe
   step = _train_step(module, optimizer, recipe)
   history, began = [], time.time()
   for i in range(recipe.steps):
-    batch = frames.images[rng.integers(0, len(frames.images), recipe.batch_size)]
+    batch = images[rng.integers(0, len(images), recipe.batch_size)]
     params, opt_state, parts = step(params, opt_state, to_model(batch), jax.random.fold_in(key, i))
     if (i + 1) % max(1, recipe.steps // 20) == 0 or i + 1 == recipe.steps:
       parts = {k: float(v) for k, v in parts.items()}
@@ -194,36 +220,41 @@ def train_codec(config: ml_collections.ConfigDict, out: str, recipe: CodecRecipe
                                  f"lower the learning rate")
       history.append(dict(step=i + 1, seconds=round(time.time() - began, 1), **parts))
       log.info("codec step %d: %s", i + 1, parts)
+  return params, history
 
-  means, recons = _encode_decode(module, params, checks.images, recipe.batch_size)
-  shift = float(means.mean())
-  scale = float(1.0 / max(means.std(), 1e-6))
-  network = dataclasses.replace(network, scaling_factor=scale, shift_factor=shift)
-  tmp = out.rstrip("/") + ".incomplete"  # renamed to ``out`` when whole: a stopped fit leaves none
-  shutil.rmtree(tmp, ignore_errors=True)
-  save_diffusers(tmp, network, params)
-  task = registry.frame_metrics_of(held_out.spec.name)
-  metrics = frame_metrics(recons[:, None], checks.images[:, None],
-                          {k: v[:, None] for k, v in checks.extras.items()}, task)
-  latent_shape = (resolution[0] // factor, resolution[1] // factor, recipe.latent_channels)
-  report = {
-      "recipe": dataclasses.asdict(recipe), "dataset": train.spec.name,
-      "frame_shape": list(resolution) + [3], "latent_shape": list(latent_shape),
-      "scaling_factor": scale, "shift_factor": shift,
+
+def _report(recipe: CodecRecipe, network: VAEConfig, out: str, frames: Frames, checks: Frames,
+            task: str, metrics: Mapping[str, np.ndarray], history: list[dict]) -> dict:
+  """The codec's ``wmjax_codec.json`` (see :func:`train_codec`)."""
+  factor = network.downsample_factor
+  h, w = frames.images.shape[1:3]
+  latent_shape = (h // factor, w // factor, recipe.latent_channels)
+  return {
+      "recipe": dataclasses.asdict(recipe), "dataset": task,
+      "frame_shape": [h, w, 3], "latent_shape": list(latent_shape),
+      "scaling_factor": network.scaling_factor, "shift_factor": network.shift_factor,
       "held_out": {k: float(np.nanmean(v)) for k, v in metrics.items()},
       "held_out_frames": len(checks.images), "train_frames": len(frames.images),
-      "history": history, "seconds": round(time.time() - began, 1),
+      "history": history,
       "overrides": ["--config.codec.kind=vae", f"--config.codec.path={os.path.abspath(out)}",
                     f"--config.frame_shape=({latent_shape[0]},{latent_shape[1]},{latent_shape[2]})",
                     f"--config.model.in_channels={latent_shape[2]}",
                     "--config.sampling.clip_denoised=False", "--config.diffusion.object_weight=0.0"],
   }
+
+
+def _write_codec(out: str, network: VAEConfig, params: dict, report: dict, images: np.ndarray,
+                 recons: np.ndarray) -> None:
+  """The diffusers folder, its report and ``reconstructions.png`` (up to 8 held-out ``images``
+  above their ``recons``), written as ``out.incomplete`` and renamed to ``out`` when whole: a
+  stopped fit leaves no codec."""
+  tmp = out.rstrip("/") + ".incomplete"
+  shutil.rmtree(tmp, ignore_errors=True)
+  save_diffusers(tmp, network, params)
   with open(os.path.join(tmp, REPORT), "w") as f:
     json.dump(report, f, indent=2)
-  shown = min(8, len(checks.images))
-  write_png(os.path.join(tmp, "reconstructions.png"),
-            frame_grid([checks.images[:shown], recons[:shown]]))
+  shown = min(8, len(images))
+  write_png(os.path.join(tmp, "reconstructions.png"), frame_grid([images[:shown], recons[:shown]]))
   if os.path.isdir(out):
-    os.rmdir(out)  # empty (checked above)
+    os.rmdir(out)  # empty (checked by _check_out)
   os.rename(tmp, out)
-  return report
