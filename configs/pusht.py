@@ -33,12 +33,12 @@ Profiles (``configs/pusht.py:PROFILE``):
   a frame), no clipping of x0 (latents are not in [-1, 1]), no object weights (in latents every
   value stands apart from its frame's median), 1500 steps. ``codec.path`` (the codec's folder) and
   ``data.latents_dir`` (the dataset pre-encoded by ``wmjax data encode``) are left empty:
-  ``experiments/pusht/run.py --profile latent`` fits and fills both, or give them as overrides. With
-  4 latent channels the whole experiment took 68 minutes on 2 CPU cores (2026-11-28; Pearson 0.915
-  and 0.868 over two training seeds, Spearman 0.9, the codec losing the agent in a fifth of frames);
-  8 channels keep the agent (found in 93 % of frames instead of 83 %) and rank all five policies
-  right in two training seeds (Pearson 0.926 and 0.987, Spearman 1.0). Its pushed T still turns into
-  a blob, and planning in it gains no more than its noise (K = 10: +0.055 ± 0.037, one seed).
+  ``experiments/pusht/run.py --profile latent`` fits and fills both, or give them as overrides. The
+  whole experiment took 57 minutes on 2 CPU cores (2026-11-28, data to planning at K = 50; 68 with
+  4 latent channels on a slower day). It ranks the five policies as the simulator does in two
+  training seeds (Pearson 0.926 and 0.987, Spearman 1.0); its pushed T still turns into a blob,
+  and planning in it gains no more than its noise (K = 10: +0.055 ± 0.037; K = 50: -0.035 ±
+  0.048, one seed).
 - ``h100``: the same recipe and data at 32.5M parameters (depth 12, width 384, 6 heads) in
   bfloat16 with the fastest attention the GPU has, 3000 steps of batch 64 at learning rate 8e-4,
   checkpointed every 500 steps so that a run cut by a job limit resumes. Two training seeds ran
