@@ -1,5 +1,5 @@
-"""What the command modules share: registering a command, its ``--config.KEY=VALUE`` overrides,
-loading its config and keeping host-only commands off accelerators."""
+"""What the command modules share: registering a command, its ``--config.KEY=VALUE`` overrides
+and keeping host-only commands off accelerators."""
 
 from __future__ import annotations
 
@@ -18,12 +18,6 @@ def overrides(extra: list[str]) -> list[str]:
   if bad:
     raise SystemExit(f"wmjax: unrecognised arguments {bad}; overrides look like --config.KEY=VALUE")
   return found
-
-
-def config_from_args(args, extra: list[str]):
-  """The config of ``--config`` with the command's overrides applied (checked by the schemas)."""
-  from wmjax.config import load_config
-  return load_config(args.config, overrides(extra))
 
 
 def register(parser: argparse.ArgumentParser, func, takes_overrides: bool = False,

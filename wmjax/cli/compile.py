@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 from wmjax.cli import common
+from wmjax.config import load_config
 
 
 def run(args, extra) -> int:
@@ -24,7 +25,7 @@ def run(args, extra) -> int:
   name, _, count = args.target.partition(":")
   if name == "cpu" and count.isdigit():  # simulated devices, before the backend starts
     jax.config.update("jax_num_cpu_devices", int(count))
-  config = common.config_from_args(args, extra)
+  config = load_config(args.config, common.overrides(extra))
   try:
     target = fit.parse_target(args.target)
   except ValueError as e:

@@ -7,6 +7,7 @@ import dataclasses
 import json
 
 from wmjax.cli import common
+from wmjax.config import load_config
 
 
 def prepare(args, extra) -> int:
@@ -32,7 +33,7 @@ def encode(args, extra) -> int:
   """Encode a dataset's episodes with the config's codec into ArrayRecord latents (IRASim's
   pre-encoding); train from them with --config.data.latents_dir=OUT."""
   from wmjax.train.encode import encode_latents
-  config = common.config_from_args(args, extra)
+  config = load_config(args.config, common.overrides(extra))
   splits = args.splits.split(",") if args.splits else None
   print(encode_latents(config, args.out, splits, dataset=args.dataset, seed=args.seed))
   return 0
@@ -44,7 +45,7 @@ def train_codec(args, extra) -> int:
   --config overrides that train a world model on it; and reconstructions.png). Use it with
   --config.codec.kind=vae --config.codec.path=OUT."""
   from wmjax.train.codec import CodecRecipe, train_codec as fit
-  config = common.config_from_args(args, extra)
+  config = load_config(args.config, common.overrides(extra))
   recipe = CodecRecipe(**{f.name: getattr(args, f.name) for f in dataclasses.fields(CodecRecipe)})
   report = fit(config, args.out, recipe)
   print(json.dumps({k: report[k] for k in ("held_out", "latent_shape", "overrides")}, indent=2))

@@ -5,13 +5,14 @@ from __future__ import annotations
 import json
 
 from wmjax.cli import common
+from wmjax.config import load_config
 
 
 def run(args, extra) -> int:
   """Parameter count, forward FLOPs, sampling cost and a per-device training-memory estimate of a
   config, without allocating the model."""
   from wmjax.train.info import config_info
-  config = common.config_from_args(args, extra)
+  config = load_config(args.config, common.overrides(extra))
   print(json.dumps(config_info(config, args.devices, name=args.config), indent=2))
   return 0
 

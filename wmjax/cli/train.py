@@ -6,7 +6,7 @@ import json
 import os
 
 from wmjax.cli import common
-from wmjax.config import OVERRIDES_HELP
+from wmjax.config import OVERRIDES_HELP, load_config
 
 RESUME_HELP = ("Rerunning in a WORKDIR with checkpoints resumes from the newest one that reads "
                "back (a damaged newer one is moved to WORKDIR/damaged_checkpoints with a "
@@ -38,7 +38,7 @@ def run(args, extra) -> int:
 
   from wmjax.train.loop import train
   maybe_initialize_distributed(args)
-  config = common.config_from_args(args, extra)
+  config = load_config(args.config, common.overrides(extra))
   allow = [k for item in args.allow_config_change for k in item.split(",") if k.strip()]
   _, result = train(config, args.workdir, allow_config_change=allow)
   if jax.process_index() == 0:

@@ -30,7 +30,7 @@ import numpy as np
 from wmjax.data.latents import open_latent_splits
 from wmjax.data.oxe import DatasetSpec
 from wmjax.data.rlds import make_window, no_windows_error, window_starts
-from wmjax.data.sources import ArrayRecordEpisodes, member_configs, open_splits
+from wmjax.data.sources import ArrayRecordEpisodes, open_splits
 from wmjax.data.stats import ActionStats
 from wmjax.frames import to_model
 
@@ -94,10 +94,25 @@ class Member:
   latents: bool
 
 
+def member_configs(data: ml_collections.ConfigDict) -> list[ml_collections.ConfigDict]:
+  """``config.data`` itself, or one config per ``data.mixture`` entry (a member inherits what its
+  entry leaves None from ``config.data``)."""
+  if not data.mixture:
+    return [data]
+  # a dataset's own reading (spec, camera) is not inherited by the others
+  base = {k: v for k, v in data.to_dict().items() if k not in ("mixture", "spec", "image_key")}
+  members = []
+  for name, entry in data.mixture.items():
+    own = {k: v for k, v in entry.to_dict().items() if v is not None}
+    members.append(ml_collections.ConfigDict(dict(base, dataset=name, **own),
+                                             type_safe=False))
+  return members
+
+
 def open_members(data: ml_collections.ConfigDict, codec: Mapping | None,
                  evaluation: bool = True) -> list[Member]:
   """Every dataset of ``config.data`` (one, or each ``mixture`` member: see
-  :func:`wmjax.data.sources.member_configs`) as a run reads it: windows of ``data.frames`` frames
+  :func:`member_configs`) as a run reads it: windows of ``data.frames`` frames
   of its training split and, with ``evaluation``, of its evaluation split, and the training
   split's statistics. Pre-encoded latents (``latents_dir``) must have been encoded with
   ``codec`` (``config.codec``); a mixture is all latents or all frames."""

@@ -177,16 +177,3 @@ def stream_windows(episodes: Iterable[Episode], frames: int, stride: int, resolu
       yield window
   if not made:
     raise no_windows_error(where, count, frames)
-
-
-def skip_image_decoding(spec: DatasetSpec) -> dict[str, Any]:
-  """TFDS ``decoders`` that leave the spec's image features encoded (nested like the features)."""
-  import tensorflow_datasets as tfds
-  decoders: dict[str, Any] = {}
-  for key in spec.image_keys:
-    *parents, leaf = ("steps/" + key).split("/")
-    node = decoders
-    for part in parents:
-      node = node.setdefault(part, {})
-    node[leaf] = tfds.decode.SkipDecoding()
-  return decoders

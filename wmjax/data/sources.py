@@ -28,7 +28,7 @@ import tensorflow_datasets as tfds
 
 from wmjax import registry
 from wmjax.data import oxe
-from wmjax.data.rlds import Episode, skip_image_decoding, stack_steps
+from wmjax.data.rlds import Episode, stack_steps
 from wmjax.data.stats import ActionStats
 
 log = logging.getLogger(__name__)
@@ -100,6 +100,18 @@ def resolve(builder, spec: SpecArg = None) -> oxe.DatasetSpec:
   sequence of candidate specs (:func:`wmjax.data.oxe.specs_from_config`), or None (the
   builder's own name)."""
   return oxe.resolve_spec(spec or builder.info.name, builder.info.features)
+
+
+def skip_image_decoding(spec: oxe.DatasetSpec) -> dict[str, Any]:
+  """TFDS ``decoders`` that leave the spec's image features encoded (nested like the features)."""
+  decoders: dict[str, Any] = {}
+  for key in spec.image_keys:
+    *parents, leaf = ("steps/" + key).split("/")
+    node = decoders
+    for part in parents:
+      node = node.setdefault(part, {})
+    node[leaf] = tfds.decode.SkipDecoding()
+  return decoders
 
 
 def _split_name(split: str) -> str:
@@ -379,21 +391,6 @@ def dataset_dir(data: ml_collections.ConfigDict) -> str:
     raise ValueError(f"config.data.builder_dir must point at the ArrayRecord builder directory "
                      f"of {data.dataset} (see `wmjax data convert`)")
   return os.path.expanduser(data.builder_dir)
-
-
-def member_configs(data: ml_collections.ConfigDict) -> list[ml_collections.ConfigDict]:
-  """``config.data`` itself, or one config per ``data.mixture`` entry (a member inherits what its
-  entry leaves None from ``config.data``)."""
-  if not data.mixture:
-    return [data]
-  # a dataset's own reading (spec, camera) is not inherited by the others
-  base = {k: v for k, v in data.to_dict().items() if k not in ("mixture", "spec", "image_key")}
-  members = []
-  for name, entry in data.mixture.items():
-    own = {k: v for k, v in entry.to_dict().items() if v is not None}
-    members.append(ml_collections.ConfigDict(dict(base, dataset=name, **own),
-                                             type_safe=False))
-  return members
 
 
 @dataclasses.dataclass(frozen=True)

@@ -13,7 +13,8 @@ from typing import Callable, Sequence
 import jax
 
 from wmjax import registry
-from wmjax.data.sources import member_configs, open_dataset
+from wmjax.data.pipeline import member_configs
+from wmjax.data.sources import open_dataset
 from wmjax.eval import video as video_lib
 from wmjax.eval.frechet import FrechetDistances
 from wmjax.eval.protocols import evaluate_protocols

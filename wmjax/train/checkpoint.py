@@ -4,7 +4,7 @@
 orbax writes each checkpoint to a temporary directory and renames it when complete, so a crash
 or kill during a save leaves the previous checkpoints intact; temporary directories left by a
 kill are removed when the next run opens the directory. A background save that fails is
-reported by :meth:`Checkpointer.poll` as soon as it has finished (the loop calls it every step),
+reported by :meth:`Checkpointer.poll` once it has finished (the loop calls it at every logged step),
 as a :class:`CheckpointError` with a one-line message. The data iterator needs no state of its
 own: batch ``k`` of :func:`wmjax.data.pipeline.training_pipeline` is a function of ``k``, so a run
 resumed at step ``k`` reads on from batch ``k``.
@@ -15,8 +15,9 @@ from __future__ import annotations
 import glob
 import os
 import shutil
+import sys
 import time
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import numpy as np
@@ -167,6 +168,37 @@ class Checkpointer:
     return CheckpointError(f"checkpoint {step} cannot be read: "
                            f"{os.path.join(self.directory, str(step), item)}: "
                            f"{describe_error(error)}")
+
+  def restore_newest(self, abstract_state: Any, check: Callable[[int, dict, dict], Any],
+                     damaged_dir: str) -> tuple[Any, int, Any] | None:
+    """``(state, step, check's answer)`` of the newest checkpoint that reads back, or None when
+    there is none. ``check(step, saved config, stored shapes)`` runs before the state is read
+    and raises to refuse it (a refusal stops the search). A damaged newer checkpoint is moved to
+    ``damaged_dir`` (kept, never deleted) with a warning; with several processes it stops the run
+    instead, naming the intact one."""
+    damaged = []
+    for step in reversed(self.all_steps()):
+      try:
+        answer = check(step, self.read_config(step), self.stored_shapes(step))
+        state = self.restore(step, abstract_state)
+      except CheckpointError as e:
+        damaged.append((step, e))
+        print(f"WARNING: {e}", file=sys.stderr, flush=True)
+        continue
+      if damaged and jax.process_count() > 1:
+        raise CheckpointError(f"{damaged[0][1]}. Checkpoint {step} is intact: move "
+                              f"{self.directory}/{damaged[0][0]} (and any newer) aside and "
+                              f"rerun to resume from it.")
+      for bad, _ in damaged:
+        where = self.set_aside(bad, damaged_dir)
+        print(f"WARNING: checkpoint {bad} is damaged and was moved to {where}; resuming from "
+              f"checkpoint {step}, the newest intact one.", file=sys.stderr, flush=True)
+      return state, step, answer
+    if damaged:
+      raise CheckpointError(
+          "no checkpoint in " + self.directory + " can be read: " + "; ".join(
+              str(e) for _, e in damaged) + ". Move the directory aside to start afresh.")
+    return None
 
   def set_aside(self, step: int, destination: str) -> str:
     """Move checkpoint ``step`` out of the way (kept, never deleted) to ``destination/step``."""

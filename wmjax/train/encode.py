@@ -12,7 +12,8 @@ import numpy as np
 from wmjax.codecs import make_codec
 from wmjax.config import ConfigError, complete_config
 from wmjax.data.latents import codec_description, encode_dataset
-from wmjax.data.sources import member_configs, open_dataset
+from wmjax.data.pipeline import member_configs
+from wmjax.data.sources import open_dataset
 from wmjax.frames import to_model
 
 

@@ -200,47 +200,24 @@ class _StopFlag:
 
 def _resume(checkpoints: Checkpointer, trainer: ShardedTrainer, config: ml_collections.ConfigDict,
             workdir: str, allow: Sequence[str], is_chief: bool):
-  """(state, step, accepted config changes) from the newest checkpoint that reads back, or
-  None when there is none. A damaged newer checkpoint is moved to ``WORKDIR/damaged_checkpoints``
-  (kept, never deleted) with a warning; a config that may not resume stops the run."""
+  """(state, step) from the newest checkpoint that reads back
+  (:meth:`~wmjax.train.checkpoint.Checkpointer.restore_newest`, damaged ones set aside in
+  ``WORKDIR/damaged_checkpoints``), or None when there is none; a config that may not resume
+  stops the run (:func:`wmjax.train.resume.check_resume`), and the changes it accepts are
+  recorded."""
   wanted = shapes_by_path(trainer.abstract_state)
-  damaged = []
-
-  def unreadable(step, error):
-    damaged.append((step, error))
-    print(f"WARNING: {error}", file=sys.stderr, flush=True)
-
-  for step in reversed(checkpoints.all_steps()):
-    try:
-      saved = checkpoints.read_config(step)
-      stored = checkpoints.stored_shapes(step)
-    except CheckpointError as e:
-      unreadable(step, e)
-      continue
-    changes, accepted_by = check_resume(step, saved, config, stored, wanted, allow)
-    try:
-      state = checkpoints.restore(step, trainer.abstract_state)
-    except CheckpointError as e:
-      unreadable(step, e)
-      continue
-    if damaged and jax.process_count() > 1:
-      raise CheckpointError(f"{damaged[0][1]}. Checkpoint {step} is intact: move "
-                            f"{checkpoints.directory}/{damaged[0][0]} (and any newer) aside and "
-                            f"rerun to resume from it.")
-    for bad, _ in damaged:
-      where = checkpoints.set_aside(bad, os.path.join(workdir, "damaged_checkpoints"))
-      print(f"WARNING: checkpoint {bad} is damaged and was moved to {where}; resuming from "
-            f"checkpoint {step}, the newest intact one.", file=sys.stderr, flush=True)
-    if changes and is_chief:
-      record_config_changes(workdir, step, changes, accepted_by)
-      print("config changes accepted on resume: " + ", ".join(
-          f"{k} {old!r} -> {new!r}" for k, (old, new) in changes.items()), flush=True)
-    return state, step
-  if damaged:
-    raise CheckpointError(
-        "no checkpoint in " + checkpoints.directory + " can be read: " + "; ".join(
-            str(e) for _, e in damaged) + ". Move the directory aside to start afresh.")
-  return None
+  restored = checkpoints.restore_newest(
+      trainer.abstract_state,
+      lambda step, saved, stored: check_resume(step, saved, config, stored, wanted, allow),
+      os.path.join(workdir, "damaged_checkpoints"))
+  if restored is None:
+    return None
+  state, step, (changes, accepted_by) = restored
+  if changes and is_chief:
+    record_config_changes(workdir, step, changes, accepted_by)
+    print("config changes accepted on resume: " + ", ".join(
+        f"{k} {old!r} -> {new!r}" for k, (old, new) in changes.items()), flush=True)
+  return state, step
 
 
 def train(config: ml_collections.ConfigDict, workdir: str, *,
@@ -414,7 +391,7 @@ class _Run:
 
   def _train_on(self, batch: dict) -> None:
     """One step on this process's ``batch``, made global over the mesh (encoded to latents on
-    the device where the codec asks for it); a failed background save stops the run here."""
+    the device where the codec asks for it)."""
     trainer = self.context.trainer
     global_batch = parallel.global_batch({k: batch[k] for k in ("frames", "actions")},
                                          trainer.mesh)
@@ -425,13 +402,13 @@ class _Run:
     self.state, self.step_metrics = trainer.step(self.state, frames, global_batch["actions"])
     self.step += 1
     self.bar.update(1)
-    self.checkpoints.poll()
 
   def _log(self, batch: dict, tick: float) -> float:
-    """The step's scalars (a NaN / inf loss stops the run) and the samples per second since
-    ``tick``, logged; returns the time now."""
+    """The step's scalars (a NaN / inf loss stops the run, and so does a failed background
+    save) and the samples per second since ``tick``, logged; returns the time now."""
     scalars = {k: float(v) for k, v in self.step_metrics.items()}
     self._check_finite(scalars["loss"])
+    self.checkpoints.poll()  # a failed background save stops the run here
     now = time.perf_counter()
     scalars["samples_per_s"] = self.config.train.log_every * self.config.batch_size / (now - tick)
     self.bar.set_postfix(loss=f"{scalars['loss']:.4f}")
