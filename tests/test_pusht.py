@@ -600,3 +600,27 @@ def test_planner_scores_tell_sampling_noise_from_model_error():
   chosen, fresh = biased["overvalued"]["chosen_sample"], biased["overvalued"]["fresh_sample"]
   assert fresh["mean"] == pytest.approx(chosen["mean"]) and fresh["mean"] > 0.5
   assert biased["gain"]["oracle"]["mean"] > biased["gain"]["one_sample"]["mean"] > 0
+
+
+@pytest.mark.unit
+def test_motion_split_measures_the_t_move_into_the_first_generated_frame():
+  """``experiments/pusht/motion_split.py``: the T's move and turn from the last context frame into
+  the first generated one, and copying the last context frame's T IoU there (1 for a still T,
+  low for a pushed one)."""
+  from types import SimpleNamespace
+
+  from wmjax.tasks.pusht.simulator import PALETTE, goal_mask
+  module = pusht_experiment_script("motion_split")
+  poses = [[(200.0, 200.0, 0.0)] * 3, [(200.0, 200.0, 0.0), (200.0, 200.0, 0.0),
+                                       (240.0, 230.0, np.pi / 6)]]
+  frames = np.full((2, 3, 48, 48, 3), 255, np.uint8)
+  state = np.zeros((2, 3, 5), np.float32)
+  for w, window in enumerate(poses):
+    for t, pose in enumerate(window):
+      frames[w, t][goal_mask(48, pose)] = PALETTE[2]  # the block's colour
+      state[w, t, 2:] = pose
+  shift, turn, copy = module.first_frame_moves(SimpleNamespace(frames=frames,
+                                                               extras={"state": state}))
+  np.testing.assert_allclose(shift, [0.0, 50.0], atol=1e-4)
+  np.testing.assert_allclose(turn, [0.0, 30.0], atol=1e-3)
+  assert copy[0] == 1.0 and copy[1] < 0.5
