@@ -603,14 +603,14 @@ def test_planner_scores_tell_sampling_noise_from_model_error():
 
 
 @pytest.mark.unit
-def test_motion_split_measures_the_t_move_into_the_first_generated_frame():
-  """``experiments/pusht/motion_split.py``: the T's move and turn from the last context frame into
+def test_probe_split_by_motion_measures_the_t_move_into_the_first_generated_frame():
+  """``experiments/pusht/probe.py --split_by_motion``: the T's move and turn from the last context frame into
   the first generated one, and copying the last context frame's T IoU there (1 for a still T,
   low for a pushed one)."""
   from types import SimpleNamespace
 
   from wmjax.tasks.pusht.simulator import PALETTE, goal_mask
-  module = pusht_experiment_script("motion_split")
+  module = pusht_experiment_script("probe")
   poses = [[(200.0, 200.0, 0.0)] * 3, [(200.0, 200.0, 0.0), (200.0, 200.0, 0.0),
                                        (240.0, 230.0, np.pi / 6)]]
   frames = np.full((2, 3, 48, 48, 3), 255, np.uint8)

@@ -17,7 +17,12 @@ can be compared window by window (:func:`paired`).
 
 Prints one table row per step and writes every number to ``--out``. ``--by_noise_level``
 measures instead whether the model puts the agent back from one noisy frame, at each noise level
-(:func:`by_noise_level`).
+(:func:`by_noise_level`). ``--split_by_motion P.json`` (repeatable, no ``--step`` / ``--out``)
+splits probes already written by how far the simulator's T moves into the first generated frame
+(:func:`split_by_motion`): is the pushed T lost where a push moves it most?
+
+    python experiments/pusht/probe.py --workdir W/model --data_dir D --split_by_motion P1.json \
+        --split_by_motion P2.json
 """
 
 from __future__ import annotations
@@ -31,6 +36,8 @@ import numpy as np
 
 CONTEXT, GENERATED = 2, 8
 LEVELS = (50, 200, 400, 600, 800, 999)  # --by_noise_level
+# --split_by_motion: the T centre's move into the first generated frame, simulator units
+MOTION_GROUPS = ((0.0, 0.5, "still"), (0.5, 5.0, "nudged"), (5.0, float("inf"), "pushed"))
 
 
 def _episode_mean_se(values: np.ndarray, episodes: np.ndarray, keep: np.ndarray):
@@ -140,6 +147,50 @@ def by_noise_level(workdir: str, step: int, data_dir: str, windows: int = 64) ->
           "windows": int(len(frames)), "levels": rows}
 
 
+def first_frame_moves(trajectories) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """Per window: the T centre's move (simulator units) and turn (degrees) from the last context
+  frame into the first generated one, and copying the last context frame's T IoU there."""
+  from wmjax.tasks.pusht.metrics import pusht_metrics
+  state = trajectories.extras["state"].astype(np.float64)  # [W, T, 5]: agent xy, T xy, T angle
+  c = CONTEXT
+  shift = np.linalg.norm(state[:, c, 2:4] - state[:, c - 1, 2:4], axis=1)
+  turn = np.degrees(np.abs(np.angle(np.exp(1j * (state[:, c, 4] - state[:, c - 1, 4])))))
+  frames = trajectories.frames
+  copy = pusht_metrics(frames[:, c - 1:c], frames[:, c:c + 1], None)["block_iou"][:, 0]
+  return shift, turn, copy
+
+
+def split_by_motion(workdir: str, data_dir: str, probe_files: list[str]) -> str:
+  """A Markdown table of the probes in ``probe_files`` (this script's ``--out``): the model's T
+  IoU at the first generated frame, and copying the last context frame's, for the windows of
+  each of :data:`MOTION_GROUPS` by the simulator's T move into that frame. The windows are read
+  again from the reference data, as ``workdir``'s model reads them."""
+  from wmjax.model import load_model
+  from wmjax.tasks.pusht.simulator import WORKSPACE
+
+  _, trajectories = reference_windows(load_model(workdir), data_dir, CONTEXT + GENERATED)
+  shift, turn, copy = first_frame_moves(trajectories)
+  pixels = trajectories.frames.shape[3] / WORKSPACE
+  where = {(e, s): i for i, (e, s) in enumerate(zip(trajectories.episode, trajectories.start))}
+  lines = ["| probe | step | group | windows | T move, median (px) | turn, median (deg) | "
+           "model T IoU | copy T IoU |", "|---|---|---|---|---|---|---|---|"]
+  for path in probe_files:
+    with open(path) as f:
+      runs = json.load(f)
+    name = os.path.join(*os.path.normpath(path).split(os.sep)[-2:])
+    for run in runs if isinstance(runs, list) else [runs]:
+      rows = np.asarray([where[(e, s)] for e, s in zip(run["episode"], run["start"])])
+      iou = np.asarray(run["per_window"]["block_iou/step1"])
+      for lo, hi, group in MOTION_GROUPS:
+        keep = (shift[rows] >= lo) & (shift[rows] < hi)
+        if keep.any():
+          lines.append(f"| {name} | {run['step']} | {group} | {keep.sum()} | "
+                       f"{np.median(shift[rows][keep]) * pixels:.2f} | "
+                       f"{np.median(turn[rows][keep]):.1f} | {iou[keep].mean():.3f} | "
+                       f"{copy[rows][keep].mean():.3f} |")
+  return "\n".join(lines)
+
+
 def paired(a: dict, b: dict, key: str, group: str = "all") -> tuple[float, float, int]:
   """``b`` minus ``a`` (two probes of the same windows) for ``per_window`` metric ``key``
   (e.g. ``block_iou/step8``) over the windows of ``group`` (all, still, moved): mean and standard
@@ -159,8 +210,8 @@ def main(argv=None) -> int:
   parser.add_argument("--workdir", required=True, help="the model's workdir (checkpoints/)")
   parser.add_argument("--data_dir", required=True,
                       help="TFDS data directory holding (or to hold) the reference dataset")
-  parser.add_argument("--step", type=int, action="append", required=True)
-  parser.add_argument("--out", required=True, help="JSON file for every number")
+  parser.add_argument("--step", type=int, action="append", default=[])
+  parser.add_argument("--out", default=None, help="JSON file for every number")
   parser.add_argument("--limit", type=int, default=None, help="at most this many windows")
   parser.add_argument("--picture", default=None,
                       help="PNG of the first 8 windows (simulator above model); a path with "
@@ -173,7 +224,15 @@ def main(argv=None) -> int:
   parser.add_argument("--by_noise_level", action="store_true",
                       help="instead: the agent from one noisy frame at each noise level "
                            "(by_noise_level), 64 windows of 3 frames")
+  parser.add_argument("--split_by_motion", action="append", default=[], metavar="PROBE_JSON",
+                      help="instead: split these probes' first generated frame by the T's move "
+                           "into it (split_by_motion); repeatable")
   args = parser.parse_args(argv)
+  if args.split_by_motion:
+    print(split_by_motion(args.workdir, args.data_dir, args.split_by_motion))
+    return 0
+  if not (args.step and args.out):
+    parser.error("--step and --out are required (unless --split_by_motion)")
   results = []
   for step in args.step:
     if args.by_noise_level:

@@ -162,9 +162,9 @@ def train_codec(config: ml_collections.ConfigDict, out: str, recipe: CodecRecipe
     raise ConfigError("train-codec reads one dataset; the config mixes several (data.mixture)")
   _check_out(out)
   rng = np.random.default_rng(recipe.seed)
-  frames, checks, task = _training_frames(config, recipe, rng)
-  began = time.time()
   module = AutoencoderKL(recipe.network())
+  frames, checks, task = _training_frames(config, recipe, module.config.downsample_factor, rng)
+  began = time.time()
   params, history = fit_codec(module, frames.images, recipe, rng)
   means, recons = _encode_decode(module, params, checks.images, recipe.batch_size)
   # the folder's shift and scale give the latents a world model diffuses mean 0 and variance 1
@@ -179,14 +179,13 @@ def train_codec(config: ml_collections.ConfigDict, out: str, recipe: CodecRecipe
   return report
 
 
-def _training_frames(config: ml_collections.ConfigDict, recipe: CodecRecipe,
+def _training_frames(config: ml_collections.ConfigDict, recipe: CodecRecipe, factor: int,
                      rng: np.random.Generator) -> tuple[Frames, Frames, str]:
   """(frames of the training split, held-out frames of the evaluation split, the dataset's name)
-  of ``config.data`` at its resolution, which the codec's downsampling must divide."""
+  of ``config.data`` at its resolution, which the codec's downsampling ``factor`` must divide."""
   dataset = open_dataset(config.data)
   train, held_out = dataset.split(config.data.train_split), dataset.split(config.data.eval_split)
   resolution = dataset.resolution(train.spec)
-  factor = recipe.network().downsample_factor
   if resolution[0] % factor or resolution[1] % factor:
     raise ValueError(f"frames {resolution[0]}x{resolution[1]} are not divisible by the codec's "
                      f"downsampling factor {factor} ({len(recipe.widths)} widths)")
