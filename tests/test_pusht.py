@@ -457,7 +457,7 @@ def test_experiment_script_runs_its_stages_resumably(experiment, capsys):
   assert list(result["policies"]) == ["push", "push@0.1", "push@0.2", "push@0.5", "stay"]
   assert result["held_out"] is True
   for values in result["policies"].values():
-    assert set(values) == {"simulator", "block", "coverage", classifier}
+    assert set(values) == {"simulator", "block", "coverage", "rigid_coverage", classifier}
     assert 0.0 <= values["simulator"]["mean"] <= 1.0
     assert values["simulator"]["mean"] == pytest.approx(np.mean(values["simulator"]["per_episode"]))
     assert values["coverage"]["world_model"]["rollouts"] == 4
@@ -482,7 +482,7 @@ def test_experiment_script_runs_its_stages_resumably(experiment, capsys):
   assert "| 3 |" in capsys.readouterr().out
   _check_summary(result, plan)
   summary = json.loads((root / "summary.json").read_text())
-  assert (summary["profile"], summary["train_steps"]) == ("cpu", 2)
+  assert (summary["profile"], summary["train_steps"], summary["planner_value"]) == ("cpu", 2, "coverage")
   assert summary["minutes"] == pytest.approx(sum(summary["stage_minutes"].values()), abs=0.05)
   # the stages before the summary (its own few milliseconds are added after it is written)
   assert set(summary["stage_minutes"]) == {"data", "classifier", "codec", "train", "policy", "plan"}
