@@ -269,25 +269,6 @@ def test_level_sampling_shifts_training_towards_noise():
     LevelSampling("logit_normal", scale=0.0)
 
 
-def test_context_noise_noises_only_the_context_frames_up_to_its_level():
-  rng = jax.random.key(0)
-  gauss = GaussianDiffusion.create("linear")
-  clean, clean_mask = training_levels(gauss, rng, 1024, 4, "irasim", 2)
-  noisy, mask = training_levels(gauss, rng, 1024, 4, "irasim", 2, LevelSampling(context_noise=150))
-  np.testing.assert_array_equal(noisy[:, 2:], clean[:, 2:])  # the predicted frames: the same draws
-  np.testing.assert_array_equal(mask, clean_mask)  # the context stays out of the loss
-  context = np.asarray(noisy[:, :2])
-  assert context.min() == -1 and context.max() == 150 and 60 < context.mean() < 90  # uniform
-  assert (context[:, 0] != context[:, 1]).mean() > 0.9  # a level per frame
-  flow, _ = training_levels(FlowMatching(), rng, 1024, 3, "irasim", 1,
-                            LevelSampling(context_noise=0.1))
-  assert 0.0 <= float(flow[:, 0].min()) and float(flow[:, 0].max()) <= 0.1
-  with pytest.raises(ValueError, match="context_noise is for the 'irasim' regime"):
-    training_levels(gauss, rng, 2, 4, "per_frame", 2, LevelSampling(context_noise=150))
-  with pytest.raises(ValueError, match="context_noise must be >= 0"):
-    LevelSampling(context_noise=-1)
-
-
 @pytest.mark.parametrize("regime,expect_zero", [("irasim", True), ("per_frame", False)])
 def test_loss_only_on_predicted_frames_in_irasim_regime(regime, expect_zero):
   """A denoiser exact on frames 1.. and wrong on frame 0 has zero loss only when frame 0 is context."""

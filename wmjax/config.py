@@ -147,10 +147,6 @@ class DiffusionConfig:
   level_distribution: str = "default"
   level_loc: float = 0.0
   level_scale: float = 1.0
-  # > 0 ('irasim' regime): the context frames noised too, each at a level drawn uniformly from
-  # clean to this (a DDPM level or flow time): robustness to a rollout's own imperfect frames;
-  # sample with sampling.context_level in that range
-  context_noise: float = 0.0
   # > 0: the loss weighs the values near the objects of the previous (context) frame by
   # 1 + object_weight, grown by object_dilation pixels (wmjax.diffusion.object_weights): small
   # objects that an unweighted MSE barely sees

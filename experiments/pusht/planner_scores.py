@@ -19,9 +19,7 @@ their true value (``SimulatorLookahead``, what a perfect model would score). Fro
 
 Each figure is given for the planner's value and for the T's share of it (``block``: the goal's
 pixels that show the block, without the agent's, which ``coverage`` counts too), to tell which of
-the two the model's errors are in, and for ``rigid_coverage`` as the score (the goal's area a
-rigid T covers at the pose read from the block's pixels) against the true coverage: whether a
-value that a T smeared over the goal cannot inflate ranks the candidates better.
+the two the model's errors are in.
 
 Standard errors are over episodes (each episode's decisions averaged first).
 
@@ -37,10 +35,6 @@ import jax
 import numpy as np
 
 POSITIONS = (0, 2, 4)
-# what is scored on each imagined and simulated candidate; the analysis judges each imagined
-# score against the true value named beside it
-SCORES = ("value", "block", "rigid")
-JUDGED_BY = {"value": "value", "block": "block", "rigid": "value"}
 
 
 def _centered(x: np.ndarray) -> np.ndarray:
@@ -105,7 +99,7 @@ def measure(workdir: str, step: int | None, episodes: int, candidates: int, samp
   model = load_model(workdir, step=step)
   config = model.config
   c, h = config.rollout.context, config.rollout.horizon
-  value, rigid = reward_from_spec("coverage"), reward_from_spec("rigid_coverage")
+  value = reward_from_spec("coverage")
   proposal = proposal_from_spec(proposal_spec, policy_chunk(config))
   states = initial_states(config, episodes, "plan", seed)
   sim = pusht.PushTSimulator(episodes, model.image_shape[0],
@@ -120,12 +114,12 @@ def measure(workdir: str, step: int | None, episodes: int, candidates: int, samp
 
   goal = pusht.goal_mask(model.image_shape[0])
 
-  def scores(videos):  # [B, K, T, H, W, 3] -> [3 (SCORES), B, K]
+  def scores(videos):  # [B, K, T, H, W, 3] -> [2 (value, block), B, K]
     b, k = videos.shape[:2]
     last = videos.reshape((b * k,) + videos.shape[2:])
     block = np.asarray(pusht.object_masks(to_model(last[:, -1]))[0]) & goal
-    return np.stack([np.asarray(value(last, INSTRUCTION)), block.sum((1, 2)) / goal.sum(),
-                     np.asarray(rigid(last, INSTRUCTION))]).reshape(len(SCORES), b, k)
+    return np.stack([np.asarray(value(last, INSTRUCTION)), block.sum((1, 2)) / goal.sum()]
+                    ).reshape(2, b, k)
 
   imagined, true = [], []
   for position in range(max(POSITIONS) + 1):
@@ -145,9 +139,8 @@ def measure(workdir: str, step: int | None, episodes: int, candidates: int, samp
     actions.append(action)
   return {"workdir": workdir, "step": step, "proposal": proposal_spec, "seed": seed,
           "positions": list(POSITIONS), "held_out": held_out(config, states),
-          "scores": list(SCORES),
-          "imagined": np.concatenate(imagined, 1).tolist(),  # [3 (SCORES), D, K, S]
-          "true": np.concatenate(true, 1).tolist(),  # [3, D, K]
+          "imagined": np.concatenate(imagined, 1).tolist(),  # [2 (value, block), D, K, S]
+          "true": np.concatenate(true, 1).tolist(),  # [2, D, K]
           "episode": np.tile(np.arange(episodes), len(POSITIONS)).tolist()}
 
 
@@ -168,10 +161,9 @@ def main(argv=None) -> int:
     parser.error("need --samples >= 2 and --candidates >= 2")
   result = measure(args.workdir, args.step, args.episodes, args.candidates, args.samples,
                    args.proposal, args.seed)
-  imagined, true = np.asarray(result["imagined"]), np.asarray(result["true"])
   result["analysis"] = {
-      name: analyse(imagined[i], true[SCORES.index(JUDGED_BY[name])], np.asarray(result["episode"]))
-      for i, name in enumerate(SCORES)}
+      name: analyse(np.asarray(result["imagined"])[i], np.asarray(result["true"])[i],
+                    np.asarray(result["episode"])) for i, name in enumerate(("value", "block"))}
   with open(args.out, "w") as f:
     json.dump(result, f)
   print(json.dumps(result["analysis"], indent=1))

@@ -14,12 +14,9 @@ One script for the whole experiment, in stages that each resume where an earlier
    its last checkpoint);
 5. ``policy``: five policies (the pusher at four noise levels and a do-nothing policy) in
    gym-pusht and closed loop in the world model from the same initial states, scored by the
-   coverage read from the imagined frames, by ``rigid_coverage`` and by the classifier
-   (``wmjax eval-policy``);
-6. ``plan``: model-predictive control ranking K candidate chunks from the noisy pusher by
-   ``--value`` on their imagined frames (``coverage``, or ``rigid_coverage``: the goal's area a
-   rigid T covers at the pose read from the block's pixels), executed in gym-pusht, one K at a
-   time (``wmjax plan``);
+   coverage read from the imagined frames and by the classifier (``wmjax eval-policy``);
+6. ``plan``: model-predictive control ranking K candidate chunks from the noisy pusher, executed
+   in gym-pusht, one K at a time (``wmjax plan``);
 7. ``summary``: WORKDIR/summary.json (``held_out``: every start state checked against the
    training split's; ``pearson`` / ``spearman`` with bootstrap ``*_ci95``, ``ranking_matches``;
    ``block_iou_push_end``, the T's IoU at the end of the ``push`` rollouts; per K the final
@@ -145,8 +142,6 @@ def main(argv=None) -> int:
   parser.add_argument("--plan_sampling_steps", type=int, default=None,
                       help="sampler steps when imagining planning candidates (default: the "
                            "config's sampling.num_steps)")
-  parser.add_argument("--value", default="coverage", choices=("coverage", "rigid_coverage"),
-                      help="the planner's value on imagined frames (default coverage)")
   parser.add_argument("--lookahead", action=argparse.BooleanOptionalAction, default=True,
                       help="also plan with the simulator as the model (a reference that does "
                            "not depend on the world model; default on)")
@@ -315,8 +310,7 @@ class Experiment:
       return
     self._check(self.wmjax(
         "eval-policy", "--workdir", self.model_dir, "--episodes", str(self.episodes), "--steps",
-        str(self.steps), "--reward", "coverage", "--reward", "rigid_coverage",
-        "--reward", f"classifier:{self.classifier_dir}",
+        str(self.steps), "--reward", "coverage", "--reward", f"classifier:{self.classifier_dir}",
         "--scan", "--video_format", self.args.video_format, "--out", out), "eval-policy")
 
   def plan(self, deadline) -> bool:
@@ -329,8 +323,7 @@ class Experiment:
           return False
         self._check(self.wmjax(
             "plan", "--workdir", self.model_dir, "--episodes", str(self.plan_episodes),
-            "--steps", str(self.plan_steps), "--candidates", str(k), "--value", self.args.value,
-            "--out", out,
+            "--steps", str(self.plan_steps), "--candidates", str(k), "--out", out,
             *(["--lookahead"] if self.args.lookahead else []),
             overrides=([] if self.args.plan_sampling_steps is None else
                        [f"sampling.num_steps={self.args.plan_sampling_steps}"])), "plan")
@@ -338,7 +331,7 @@ class Experiment:
         result = json.load(f)
       rows.update(result["candidates"])
       first = first or result
-    merged = {**first, "value": self.args.value, "candidates": rows, "table": planning_table(rows)}
+    merged = {**first, "candidates": rows, "table": planning_table(rows)}
     with open(self.path("plan", "plan.json"), "w") as f:
       json.dump(merged, f, indent=2)
     with open(self.path("plan", "plan.md"), "w") as f:
@@ -355,8 +348,7 @@ class Experiment:
       with open(self.path(file)) as f:
         results[name] = json.load(f)
     summary = {"profile": self.args.profile, "config": self.config.name,
-               "train_steps": self._trained_steps(), "planner_value": results["plan"]["value"],
-               **self._minutes(),
+               "train_steps": self._trained_steps(), **self._minutes(),
                **({"codec_held_out": results["codec"]["held_out"]} if self.fits_codec else {}),
                **summarize(results["policy_eval"], results["plan"], "coverage")}
     with open(self.path("results.json"), "w") as f:

@@ -92,8 +92,8 @@ def add_parser(sub) -> None:
                            "improve) | module:attribute, repeatable (default: push, push:0.1, "
                            "push:0.2, push:0.5, stay)")
   policy.add_argument("--reward", action="append",
-                      help="coverage | rigid_coverage | vlm | classifier:DIR | goal:IMAGE, "
-                           "repeatable, all scored on the same rollouts (default: coverage)")
+                      help="coverage | vlm | classifier:DIR | goal:IMAGE, repeatable, all scored "
+                           "on the same rollouts (default: coverage)")
   policy.add_argument("--scan", action="store_true",
                       help="roll out inside one jitted scan (pure-JAX policies)")
   policy.add_argument("--videos", type=int, default=4, help="episodes per policy video")
@@ -116,8 +116,8 @@ def add_parser(sub) -> None:
   planner.add_argument("--execute", type=int, default=None,
                        help="actions executed before replanning (default: the whole candidate)")
   planner.add_argument("--value", default="coverage",
-                       help="value function on imagined frames: coverage | rigid_coverage | vlm | "
-                            "classifier:DIR | goal:IMAGE (default coverage)")
+                       help="value function on imagined frames: coverage | vlm | classifier:DIR | "
+                            "goal:IMAGE (default coverage)")
   planner.add_argument("--lookahead", action="store_true",
                        help="also plan with the simulator itself as the model (a reference)")
   common.register(planner, plan, takes_overrides=True)

@@ -37,18 +37,11 @@ class LevelSampling:
   pure noise: ``'uniform'`` (DDPM), ``'logit_normal'`` (``u = sigmoid(loc + scale * N(0, 1))``,
   SD3; ``loc > 0`` puts more of the training at high noise, where a frame has to come from its
   past and its action) or ``'default'`` (the process's own: uniform for Gaussian diffusion,
-  logit-normal(0, 1) for flow matching).
-
-  ``context_noise`` > 0 (``irasim`` regime only) noises the context frames too, each at a level
-  drawn uniformly between clean and ``context_noise`` (a DDPM level such as 150 of 1000, or a
-  flow time): a rollout's context frames are the model's own samples, never exactly the data's,
-  and a network that has only seen clean context copies their flaws forward (GameNGen's noise
-  augmentation). Sample with ``sampling.context_level`` in that range."""
+  logit-normal(0, 1) for flow matching)."""
 
   distribution: str = "default"
   loc: float = 0.0
   scale: float = 1.0
-  context_noise: float = 0.0
 
   def __post_init__(self):
     if self.distribution not in LEVEL_DISTRIBUTIONS:
@@ -56,14 +49,11 @@ class LevelSampling:
                        f"{self.distribution!r}")
     if self.scale <= 0:
       raise ValueError(f"level scale must be > 0, got {self.scale}")
-    if self.context_noise < 0:
-      raise ValueError(f"context_noise must be >= 0, got {self.context_noise}")
 
   @classmethod
   def from_config(cls, diffusion) -> "LevelSampling":
     """From a ``config.diffusion`` section (:class:`wmjax.config.DiffusionConfig`)."""
-    return cls(diffusion.level_distribution, diffusion.level_loc, diffusion.level_scale,
-               diffusion.context_noise)
+    return cls(diffusion.level_distribution, diffusion.level_loc, diffusion.level_scale)
 
   def fractions(self, rng: jax.Array, shape: tuple[int, ...], default: str) -> jax.Array:
     """Fractions in ``[0, 1]`` of ``shape``; ``default`` stands for ``'default'``."""
@@ -279,9 +269,8 @@ def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,
   """Noise levels ``[B, T]`` and the loss mask ``[B, T]`` of one training batch; every level
   the regime leaves noisy is drawn by ``sampling``.
 
-  ``irasim``: the first ``num_context`` frames are clean (or noised up to
-  ``sampling.context_noise``) and excluded from the loss; the predicted frames share one level
-  per sample. ``per_frame`` (WPE, diffusion forcing): an independent level
+  ``irasim``: the first ``num_context`` frames are clean and excluded from the loss; the predicted
+  frames share one level per sample. ``per_frame`` (WPE, diffusion forcing): an independent level
   for every frame, every frame in the loss. ``monotone``: the same independent levels sorted
   along time, so that no frame is cleaner than one before it. That is the pattern of every
   scheduling matrix (full sequence, pyramid, autoregressive); under causal attention a frame's
@@ -293,9 +282,6 @@ def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,
   network: every prediction from a clean past. The frames after ``k`` take independent levels;
   under causal attention they cannot reach frame ``k``.
   """
-  if sampling.context_noise and regime != "irasim":
-    raise ValueError(f"context_noise is for the 'irasim' regime (clean context frames), got "
-                     f"regime {regime!r}")
   if regime in ("per_frame", "monotone"):
     levels = process.sample_levels(rng, (batch, frames), sampling)
     if regime == "monotone":
@@ -314,22 +300,9 @@ def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,
       return levels, (steps == target).astype(jnp.float32)
     shared = process.sample_levels(rng, (batch, 1), sampling)
     is_context = jnp.arange(frames)[None, :] < num_context
-    context = jnp.asarray(process.clean_level, shared.dtype)
-    if sampling.context_noise:
-      context = _context_levels(process, jax.random.fold_in(rng, 1), (batch, frames),
-                                sampling.context_noise, shared.dtype)
-    levels = jnp.where(is_context, context, shared)
+    levels = jnp.where(is_context, jnp.asarray(process.clean_level, shared.dtype), shared)
     return levels, jnp.broadcast_to(~is_context, (batch, frames)).astype(jnp.float32)
   raise ValueError(f"noise regime must be one of {NOISE_REGIMES}, got {regime!r}")
-
-
-def _context_levels(process: Process, rng: jax.Array, shape: tuple[int, ...], top: float,
-                    dtype) -> jax.Array:
-  """Levels ``shape`` drawn uniformly from clean to ``top`` (integers for Gaussian diffusion)."""
-  clean, top = process.clean_level, process.level(top)
-  levels = clean + jax.random.uniform(rng, shape) * (top + int(jnp.issubdtype(dtype, jnp.integer))
-                                                      - clean)
-  return (jnp.floor(levels) if jnp.issubdtype(dtype, jnp.integer) else levels).astype(dtype)
 
 
 def diffusion_loss(denoise_fn: Callable[[jax.Array, jax.Array], jax.Array], process: Process,

@@ -13,7 +13,6 @@ imagined frames, in numpy or inside a jitted scan:
 * :func:`classify_pixels` / :func:`object_masks`: nearest palette colour per pixel;
 * :func:`centroids`: world position of the block and the agent;
 * :func:`goal_mask` / :func:`frame_coverage`: goal-region pixels and the fraction the block covers;
-  :func:`t_masks`: the pixels of Ts at given poses;
 * :class:`PushPolicy`: a frame-based controller that walks around the block and pushes its centre
   towards the goal's, with Gaussian action noise (``noise`` in units of the 512-px workspace, as
   WPE's 0.1 / 0.2 / 0.5 levels); a pure function ``(frames, key) -> action chunk``;
@@ -71,20 +70,13 @@ def goal_centroid() -> np.ndarray:
 
 def goal_mask(size: int, pose=GOAL_POSE) -> np.ndarray:
   """``[size, size]`` bool: pixels whose centre lies inside the T at ``pose``."""
-  return t_masks(size, pose)
-
-
-def t_masks(size: int, poses) -> np.ndarray:
-  """``[..., size, size]`` bool: pixels whose centre lies inside the T at each of ``poses [..., 3]``
-  (``x, y, theta``)."""
-  poses = np.asarray(poses, np.float64)
   centres = (np.arange(size) + 0.5) * WORKSPACE / size
   ys, xs = np.meshgrid(centres, centres, indexing="ij")
-  x, y, theta = (poses[..., i, None, None] for i in range(3))
+  x, y, theta = pose
   c, s = np.cos(theta), np.sin(theta)
   local_x = c * (xs - x) + s * (ys - y)
   local_y = -s * (xs - x) + c * (ys - y)
-  inside = np.zeros(local_x.shape, bool)
+  inside = np.zeros((size, size), bool)
   for x0, x1, y0, y1 in T_RECTS:
     inside |= (local_x >= x0) & (local_x <= x1) & (local_y >= y0) & (local_y <= y1)
   return inside
