@@ -331,6 +331,22 @@ def test_episode_mix_idle_agents_keep_everything_still_and_random_agents_touch_t
 
 
 @pytest.mark.unit
+def test_collecting_in_worker_processes_gives_the_same_episodes_in_the_same_order():
+  config = pusht_data.PushTConfig(image_size=16, episode_length=3, batch=2,
+                                  mix=(0.5, 0.25, 0.25))
+  serial = list(pusht_data.collect(config, 5, np.random.default_rng(5)))
+  parallel = list(pusht_data.collect(config, 5, np.random.default_rng(5), workers=2))
+  assert len(parallel) == 5
+  for one, other in zip(serial, parallel, strict=True):
+    np.testing.assert_array_equal(one.images, other.images)
+    np.testing.assert_array_equal(one.actions, other.actions)
+    for key, values in one.observations.items():
+      np.testing.assert_array_equal(values, other.observations[key])
+  with pytest.raises(ValueError, match="workers must be >= 1"):
+    next(pusht_data.collect(config, 1, np.random.default_rng(5), workers=0))
+
+
+@pytest.mark.unit
 def test_without_the_simulator_preparing_writes_nothing(tmp_path, monkeypatch):
   monkeypatch.setitem(sys.modules, "gym_pusht", None)  # its import fails, as when not installed
   with pytest.raises(ImportError, match=r"pip install 'wmjax\[pusht\]'"):

@@ -149,6 +149,9 @@ def main(argv=None) -> int:
                       help="closed-loop videos: mp4 (needs imageio-ffmpeg) or gif")
   parser.add_argument("--success_coverage", type=float, default=0.5,
                       help="classifier label: coverage >= this")
+  parser.add_argument("--data_workers", type=int, default=len(os.sched_getaffinity(0)),
+                      help="processes simulating the dataset at once (default: the CPUs this "
+                           "process may use; the data is the same for any number)")
   parser.add_argument("--smoke", action="store_true",
                       help="tiny data, model and episodes: checks the plumbing in minutes")
   args, extra = parser.parse_known_args(argv)
@@ -256,7 +259,8 @@ class Experiment:
   # ------------------------------------------------------------------ stages
   def data(self, deadline) -> None:
     from wmjax.tasks.pusht.dataset import PushTConfig, prepare
-    print(prepare(self.config.data.data_dir, PushTConfig.from_dict(self.config.data.pusht)))
+    print(prepare(self.config.data.data_dir, PushTConfig.from_dict(self.config.data.pusht),
+                  workers=self.args.data_workers))
 
   def classifier(self, deadline) -> None:
     metrics_file = os.path.join(self.classifier_dir, "metrics.json")

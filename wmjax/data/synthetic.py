@@ -189,15 +189,17 @@ def _one_writer(data_dir: str, name: str):
       fcntl.flock(lock, fcntl.LOCK_UN)
 
 
-def prepare(builder_class: type[SyntheticBuilder], data_dir: str, params) -> str:
+def prepare(builder_class: type[SyntheticBuilder], data_dir: str, params, **options) -> str:
   """Write the dataset as ArrayRecord under ``data_dir`` (once, also when several processes ask
-  for it at the same time); returns the builder directory."""
+  for it at the same time); returns the builder directory. ``options`` go to the builder (how
+  it generates, not what: a Push-T builder's ``workers``)."""
   data_dir = os.fspath(data_dir)
   written = os.path.join(data_dir, builder_class.name, params.name, str(builder_class.VERSION))
   if "://" not in data_dir and os.path.exists(os.path.join(written, "dataset_info.json")):
     return written  # reading needs no builder (nor TensorFlow, which writing does)
   builder_class.check_can_write()  # before a directory or lock is made
   with _one_writer(data_dir, f"{builder_class.name}-{params.name}"):
-    builder = builder_class(params=params, data_dir=data_dir, file_format="array_record")
+    builder = builder_class(params=params, data_dir=data_dir, file_format="array_record",
+                            **options)
     builder.download_and_prepare()
   return os.fspath(builder.data_dir)

@@ -24,6 +24,9 @@ random agent, :data:`IDLE_AGENT` = -2 for an idle one); the reward is gym-pusht'
 from __future__ import annotations
 
 import dataclasses
+import itertools
+import multiprocessing
+from concurrent import futures
 
 import jax
 import jax.numpy as jnp
@@ -187,24 +190,49 @@ def _policy(config: PushTConfig, kinds, noise, states):
   return policy
 
 
-def collect(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
+def collect(config: PushTConfig, num_episodes: int, rng: np.random.Generator, workers: int = 1):
   """Simulate ``num_episodes`` episodes, ``config.batch`` at a time, cycling through the noise
   levels (and the episode kinds of ``config.mix``); yields
-  :class:`wmjax.data.synthetic.GeneratedEpisode`."""
-  for kinds, noise, states, seed in _draws(config, num_episodes, rng):
-    policy = _policy(config, kinds, noise, states)
-    run = simulator.simulate_policy(policy, states, config.episode_length - 1,
-                                    image_size=config.image_size, key=jax.random.key(seed),
-                                    action_repeat=config.action_repeat)
-    for i in range(len(states)):
-      actions = np.concatenate([run["actions"][i], run["state"][i, -1:, :2]])  # last: stay
-      coverage = run["coverage"][i]
-      yield synthetic.GeneratedEpisode(
-          images=run["frames"][i], actions=actions.astype(np.float32), instruction=INSTRUCTION,
-          rewards=np.clip(coverage / simulator.SUCCESS_COVERAGE, 0, 1).astype(np.float32),
-          observations={"state": run["state"][i], "coverage": coverage,
-                        "success": coverage > simulator.SUCCESS_COVERAGE,
-                        "policy_noise": np.full(len(coverage), noise[i], np.float32)})
+  :class:`wmjax.data.synthetic.GeneratedEpisode`. ``workers > 1`` simulates the batches in that
+  many processes (spawned, JAX on their CPU); the episodes are the same for any number."""
+  if workers < 1:
+    raise ValueError(f"workers must be >= 1, got {workers}")
+  draws = list(_draws(config, num_episodes, rng))  # all of rng's draws, before any simulation
+  if workers == 1 or len(draws) < 2:
+    for draw in draws:
+      yield from _simulate_batch(config, draw)
+    return
+  context = multiprocessing.get_context("spawn")  # a forked JAX runtime can deadlock
+  with futures.ProcessPoolExecutor(min(workers, len(draws)), mp_context=context,
+                                   initializer=_on_cpu) as pool:
+    for batch in pool.map(_simulate_batch, itertools.repeat(config), draws):
+      yield from batch
+
+
+def _on_cpu() -> None:
+  """A worker's JAX runs on the CPU: the policies are light, and the accelerator is the
+  trainer's."""
+  jax.config.update("jax_platforms", "cpu")
+
+
+def _simulate_batch(config: PushTConfig, draw) -> list[synthetic.GeneratedEpisode]:
+  """The episodes of one of :func:`_draws`' batches ``(kinds, noise, states, seed)``."""
+  kinds, noise, states, seed = draw
+  policy = _policy(config, kinds, noise, states)
+  run = simulator.simulate_policy(policy, states, config.episode_length - 1,
+                                  image_size=config.image_size, key=jax.random.key(seed),
+                                  action_repeat=config.action_repeat)
+  episodes = []
+  for i in range(len(states)):
+    actions = np.concatenate([run["actions"][i], run["state"][i, -1:, :2]])  # last: stay
+    coverage = run["coverage"][i]
+    episodes.append(synthetic.GeneratedEpisode(
+        images=run["frames"][i], actions=actions.astype(np.float32), instruction=INSTRUCTION,
+        rewards=np.clip(coverage / simulator.SUCCESS_COVERAGE, 0, 1).astype(np.float32),
+        observations={"state": run["state"][i], "coverage": coverage,
+                      "success": coverage > simulator.SUCCESS_COVERAGE,
+                      "policy_noise": np.full(len(coverage), noise[i], np.float32)}))
+  return episodes
 
 
 class PushT(synthetic.SyntheticBuilder):
@@ -224,8 +252,12 @@ class PushT(synthetic.SyntheticBuilder):
     return {"state": tfds.features.Tensor(shape=(5,), dtype=np.float32), "coverage": scalar,
             "success": np.bool_, "policy_noise": scalar}
 
+  def __init__(self, *, workers: int = 1, **kwargs):
+    self.workers = workers  # processes simulating at once (:func:`collect`)
+    super().__init__(**kwargs)
+
   def episodes(self, count, rng):
-    return collect(self.params, count, rng)
+    return collect(self.params, count, rng, self.workers)
 
   def metadata(self):
     """The parameters; the mix's and the action repeat's only where they are not the defaults,
@@ -248,6 +280,7 @@ class PushT(synthetic.SyntheticBuilder):
     return np.concatenate([states for _, _, states, _ in draws])
 
 
-def prepare(data_dir: str, config: PushTConfig = PushTConfig()) -> str:
-  """Simulate and write the dataset under ``data_dir`` (once); returns the builder directory."""
-  return synthetic.prepare(PushT, data_dir, config)
+def prepare(data_dir: str, config: PushTConfig = PushTConfig(), workers: int = 1) -> str:
+  """Simulate and write the dataset under ``data_dir`` (once), in ``workers`` processes; returns
+  the builder directory."""
+  return synthetic.prepare(PushT, data_dir, config, workers=workers)
