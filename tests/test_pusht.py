@@ -440,6 +440,9 @@ def test_experiment_script_runs_its_stages_resumably(experiment, capsys):
   root = Path(args[1])
   assert run(args + ["--minutes", "0"]) == 3  # the deadline has passed: nothing starts
   assert not (root / "policy_eval").exists()
+  with pytest.raises(SystemExit, match=r"lacks policy_eval/policy_eval.json \(stage policy\), "
+                                       r"plan/plan.json \(stage plan\): run those stages first"):
+    run(args + ["--stage", "summary"])
   assert run(args) == 0  # data, classifier and model done before: skipped
   result = json.loads((root / "policy_eval" / "policy_eval.json").read_text())
   classifier = f"classifier:{root / 'classifier'}"

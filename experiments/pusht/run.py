@@ -348,6 +348,11 @@ class Experiment:
     results = {}
     files = {"classifier": "classifier/metrics.json", "policy_eval": "policy_eval/policy_eval.json",
              "plan": "plan/plan.json", **({"codec": f"codec/{REPORT}"} if self.fits_codec else {})}
+    missing = [f"{file} (stage {name.removesuffix('_eval')})" for name, file in files.items()
+               if not os.path.exists(self.path(file))]
+    if missing:
+      raise SystemExit(f"the summary reads the results of the stages before it, and "
+                       f"{self.workdir} lacks {', '.join(missing)}: run those stages first")
     for name, file in files.items():
       with open(self.path(file)) as f:
         results[name] = json.load(f)
