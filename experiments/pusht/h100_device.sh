@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The Push-T `h100` profile end to end on a lent GPU machine (no package index there), from a
-# fresh clone: data and success classifier on the host CPUs (skipped where W/seedS/data and
+# fresh clone: data and success classifier on the machine's CPUs (the dataset simulated in one
+# process per CPU: 1.1 min on 2 cores of the CPU VM, 2026-11-28; skipped where W/seedS/data and
 # classifier are carried, prepared), then for all training seeds at once, on the one GPU, the
 # world model, the policy evaluation and planning (held-out start states), each seed in its own
 # workdir W/seedS sharing the first seed's data and classifier. Carry .whl (device_wheels.sh):
@@ -15,6 +16,9 @@
 # Summaries, logs, policy_eval/, plan/ and improve/ go to $OUT/pusht.tar. Measured on one H200 (2026-11-27),
 # data and classifier prepared on the host and carried in W/seed0: `h100_device.sh W 7.3 "0 1"
 # --no-lookahead --candidates 1,10,50` finished both seeds in 7.4 minutes (RESULTS.md beside this).
+# With the data and classifier made there too (not yet measured on a GPU machine), the same
+# command runs the whole experiment for two training seeds from a fresh clone in one call:
+#   experiments/pusht/h100_device.sh /tmp/pusht 7.3 "0 1" --no-lookahead --candidates 1,10,50
 set -uo pipefail
 W=$(realpath -m "$1"); minutes=$2; seeds=${3:-0 1}; shift $(( $# < 3 ? $# : 3 ))
 if [[ -z ${NO_WHEELS:-} ]]; then  # NO_WHEELS=1: the packages are installed already

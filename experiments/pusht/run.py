@@ -4,7 +4,7 @@ One script for the whole experiment, in stages that each resume where an earlier
 (see RESULTS.md beside it for measured runs):
 
 1. ``data``: simulate Push-T episodes with a scripted pusher at noise levels 0 / 0.1 / 0.2 / 0.5
-   (``wmjax data prepare pusht``; host CPUs only);
+   (``wmjax data prepare pusht``; host CPUs only, ``--data_workers`` processes at once);
 2. ``classifier``: a success classifier (coverage >= --success_coverage) on the dataset's frames
    (host CPUs only);
 3. ``codec``: for a profile that diffuses in the latents of a codec fitted to the data (``latent``):
