@@ -344,6 +344,8 @@ def test_collecting_in_worker_processes_gives_the_same_episodes_in_the_same_orde
       np.testing.assert_array_equal(values, other.observations[key])
   with pytest.raises(ValueError, match="workers must be >= 1"):
     next(pusht_data.collect(config, 1, np.random.default_rng(5), workers=0))
+  with pytest.raises(ValueError, match="workers must be >= 1"):
+    pusht_data.prepare("/nonexistent/never-written", config, workers=0)
 
 
 @pytest.mark.unit

@@ -84,6 +84,11 @@ UNFINISHED = 3  # exit code: stopped at the deadline, run the same command again
 CONTROL_STEPS, PLAN_CONTROL_STEPS = 32, 24
 
 
+def _usable_cpus() -> int:
+  """The CPUs this process may run on (all of the machine's where the system does not say)."""
+  return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 class Deadline:
   """``minutes`` from now (or never)."""
 
@@ -149,7 +154,7 @@ def main(argv=None) -> int:
                       help="closed-loop videos: mp4 (needs imageio-ffmpeg) or gif")
   parser.add_argument("--success_coverage", type=float, default=0.5,
                       help="classifier label: coverage >= this")
-  parser.add_argument("--data_workers", type=int, default=len(os.sched_getaffinity(0)),
+  parser.add_argument("--data_workers", type=int, default=_usable_cpus(),
                       help="processes simulating the dataset at once (default: the CPUs this "
                            "process may use; the data is the same for any number)")
   parser.add_argument("--smoke", action="store_true",

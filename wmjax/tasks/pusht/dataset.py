@@ -283,4 +283,6 @@ class PushT(synthetic.SyntheticBuilder):
 def prepare(data_dir: str, config: PushTConfig = PushTConfig(), workers: int = 1) -> str:
   """Simulate and write the dataset under ``data_dir`` (once), in ``workers`` processes; returns
   the builder directory."""
+  if workers < 1:  # before anything is written
+    raise ValueError(f"workers must be >= 1, got {workers}")
   return synthetic.prepare(PushT, data_dir, config, workers=workers)

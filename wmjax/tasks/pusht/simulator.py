@@ -302,7 +302,8 @@ def _step_undrawn(env, action: np.ndarray) -> None:
   """One control step of gym-pusht's environment ``env`` towards ``action [2]`` without drawing
   its frame (two thirds of a step's time at 48 px): the held action's control steps before the
   last, whose frames nobody sees. gym-pusht draws in ``step`` when its ``obs_type`` asks for
-  pixels, so the step runs as a state observer; the physics is the same."""
+  pixels, so the step runs as a state observer; the physics is the same. It goes past
+  gymnasium's wrappers, whose step count (the time limit's truncation) nothing here reads."""
   inner = env.unwrapped
   obs_type, inner.obs_type = inner.obs_type, "state"
   try:
