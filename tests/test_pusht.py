@@ -461,6 +461,8 @@ def test_experiment_script_runs_its_stages_resumably(experiment, capsys):
       assert {m: len(v) for m, v in per_step.items()} == {
           "block_error_px": 8, "block_angle_error_deg": 8, "block_iou": 8}
       assert values["block"][kind]["end"]["block_iou"] == per_step["block_iou"][-1]
+      episodes = values["block"][kind]["end_per_episode"]["block_iou"]
+      assert len(episodes) == 4 and np.mean(episodes) == pytest.approx(per_step["block_iou"][-1])
   intervals = result["rewards"]["coverage"]["agreement_ci95"]
   assert intervals["samples"] == 2000 and intervals["level"] == 0.95
   pearson = result["rewards"]["coverage"]["agreement"]["pearson"]

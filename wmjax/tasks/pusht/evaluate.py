@@ -197,7 +197,9 @@ def rollout_block_metrics(imagined, truth, context: int) -> dict[str, dict]:
   generated step, for the world model's frames ``imagined`` (the same shape, the first
   ``context`` given) and for copying the last given frame (a model that never moves the T):
   per kind, the mean over episodes of each of :data:`BLOCK_METRICS` per step (``per_step``:
-  ``[T - context]`` lists) and at the last step (``end``)."""
+  ``[T - context]`` lists) and at the last step (``end``), and each episode's value at the last
+  step (``end_per_episode``: ``[B]`` lists, in the order of the start states, so that two models
+  or samplers can be compared episode by episode)."""
   truth = to_uint8(truth)
   copy = np.repeat(truth[:, context - 1:context], truth.shape[1] - context, axis=1)
   rows = {}
@@ -205,7 +207,9 @@ def rollout_block_metrics(imagined, truth, context: int) -> dict[str, dict]:
                        ("copy_first_frame", copy)):
     scores = pusht_metrics(frames, truth[:, context:], {})
     per_step = {m: [float(x) for x in scores[m].mean(0)] for m in BLOCK_METRICS}
-    rows[kind] = {"per_step": per_step, "end": {m: v[-1] for m, v in per_step.items()}}
+    rows[kind] = {"per_step": per_step, "end": {m: v[-1] for m, v in per_step.items()},
+                  "end_per_episode": {m: [float(x) for x in scores[m][:, -1]]
+                                      for m in BLOCK_METRICS}}
   return rows
 
 
