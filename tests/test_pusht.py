@@ -647,3 +647,26 @@ def test_probe_split_by_motion_measures_the_t_move_into_the_first_generated_fram
   np.testing.assert_allclose(shift, [0.0, 50.0], atol=1e-4)
   np.testing.assert_allclose(turn, [0.0, 30.0], atol=1e-3)
   assert copy[0] == 1.0 and copy[1] < 0.5
+
+
+@pytest.mark.unit
+def test_lost_pixels_tells_a_fading_outline_from_a_moved_t():
+  """``experiments/pusht/lost_pixels.py``: a T whose outline is painted lighter loses exactly its
+  outline pixels, to the light grey class, and keeps its interior; a moved T loses pixels to the
+  background and adds as many over it."""
+  from wmjax.tasks.pusht.simulator import PALETTE, goal_mask
+  module = pusht_experiment_script("lost_pixels")
+  truth = np.full((1, 48, 48, 3), 255, np.uint8)
+  t_mask = goal_mask(48, (250.0, 250.0, 0.3))
+  truth[0][t_mask] = PALETTE[2]
+  faded = truth.copy()
+  outline = module._outline(t_mask[None])[0]
+  faded[0][outline] = (190, 195, 200)  # nearer the light grey than the T's colour
+  report = module.frame_report(truth, faded)
+  assert report["lost_as"]["wall"] == outline.sum() == report["true_pixels"] - report["model_pixels"]
+  assert sum(report["added_over"].values()) == 0 and 0 < report["block_iou"] < 1
+  assert report["interior_rgb"]["model"] == report["interior_rgb"]["simulator"]
+  moved = np.full_like(truth, 255)
+  moved[0][goal_mask(48, (330.0, 250.0, 0.3))] = PALETTE[2]
+  report = module.frame_report(truth, moved)
+  assert report["lost_as"]["background"] > 0 and report["added_over"]["background"] > 0
