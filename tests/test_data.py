@@ -88,23 +88,6 @@ def test_window_actions_are_the_standardised_raw_actions(oxe_data, name):
     np.testing.assert_array_equal(window["actions"][j], np.asarray(expected, np.float32))
 
 
-@pytest.mark.integration
-def test_anchored_windows_begin_with_their_episodes_first_frame(oxe_data):
-  """``anchor``: a window's first frame is its episode's first; its other frames and its actions
-  are the plain window's."""
-  _, array_record_dir = oxe_data["language_table"]
-  episodes = ArrayRecordEpisodes(array_record_dir, "train")
-  plain = WindowSource(episodes, FRAMES, STRIDE, (16, 16))
-  anchored = WindowSource(episodes, FRAMES, STRIDE, (16, 16), anchor=True)
-  first, later = anchored[1], anchored[2]  # episode 2 from step 0 and from step 2
-  assert (later["episode"], later["start"]) == (2, 2)
-  np.testing.assert_array_equal(first["frames"], plain[1]["frames"])
-  np.testing.assert_array_equal(later["frames"][0], plain[1]["frames"][0])
-  np.testing.assert_array_equal(later["frames"][1:], plain[2]["frames"][1:])
-  np.testing.assert_array_equal(later["actions"], plain[2]["actions"])
-  assert not np.array_equal(later["frames"][0], plain[2]["frames"][0])
-
-
 @pytest.mark.unit
 def test_standardisation_by_hand():
   rt1 = oxe.SPECS["fractal20220817_data"][0]

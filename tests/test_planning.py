@@ -105,23 +105,3 @@ def test_closed_loop_executes_the_chosen_actions_and_replans(model):
   np.testing.assert_allclose(np.stack(executed, 1), out["actions"])
   for plan in out["plans"]:
     np.testing.assert_array_equal(plan.index, np.nanargmax(plan.scores, 1))
-
-
-def test_closed_loop_gives_an_anchored_model_the_first_frame_and_the_newest():
-  """For an anchored world model the planner's window is the episode's first frame and the newest
-  ``context - 1``, with the actions between those newest."""
-  seen = []
-
-  class Recording:  # a planner that records its windows and always moves by 1
-    horizon, world_model = 1, type("Anchored", (), {"anchored": True})()
-
-    def plan(self, frames, context_actions, key):
-      seen.append((frames[:, :, 0, 0, 0].tolist(), context_actions[:, :, 0].tolist()))
-      return planning.Plan(np.ones((1, 1, 1)), np.zeros(1, int), None, None, None)
-
-  start = np.arange(3, dtype=np.float32).reshape(1, 3, 1, 1, 1)
-  steps = iter(range(3, 10))
-  out = planning.run_closed_loop(Recording(), lambda a: np.full((1, 1, 1, 1), next(steps)),
-                                 start, 3, jax.random.key(0), context_actions=np.zeros((1, 2, 1)))
-  assert out["frames"][0, :, 0, 0, 0].tolist() == [0, 1, 2, 3, 4, 5]
-  assert seen == [([[0, 1, 2]], [[0, 0]]), ([[0, 2, 3]], [[0, 1]]), ([[0, 3, 4]], [[1, 1]])]

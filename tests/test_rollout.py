@@ -8,7 +8,7 @@ import pytest
 
 from conftest import jit_apply, tiny_world_model
 from wmjax.env import WorldModelEnv
-from wmjax.rollout import block_key, rollout, sample_block
+from wmjax.rollout import rollout, sample_block
 
 pytestmark = pytest.mark.unit
 
@@ -79,35 +79,6 @@ def test_context_actions_condition_the_first_block():
   known = rollout(wm, params, context, actions, rng, horizon=2,
                   context_actions=jnp.ones((1, 2, 7)))
   assert float(jnp.abs(without - known)[:, 3:].max()) > 1e-4
-
-
-def test_anchored_model_keeps_its_first_frame_in_every_window():
-  """An anchored model's rollout (and its closed-loop environment) == blocks sampled one by one
-  from the rollout's first frame and the newest c-1; an anchored model needs two context frames
-  in its training windows and its rollouts."""
-  with pytest.raises(ValueError, match="needs diffusion.num_context >= 2"):
-    tiny_world_model("irasim.py:S", "data.anchor_first_frame=True")
-  wm, params = tiny_world_model("irasim.py:S", "data.anchor_first_frame=True",
-                                "diffusion.num_context=2", "sampling.num_steps=2")
-  assert wm.anchored
-  c, h, n = 3, 1, 3
-  context, actions = _inputs(wm, 1, c, n)
-  rng = jax.random.key(3)
-  out = rollout(wm, params, context, actions, rng, horizon=h)
-  mask = jnp.concatenate([jnp.zeros((1, c - 1), bool), jnp.ones((1, 1), bool)], 1)
-  frames, history = list(context[0]), jnp.zeros((1, c - 1, actions.shape[-1]))
-  for k in range(n):
-    window = jnp.stack(frames[:1] + frames[len(frames) - c + 1:])[None]
-    new = sample_block(wm, params, window, jnp.concatenate([history, actions[:, k:k + 1]], 1),
-                       block_key(rng, k), mask)
-    frames.append(new[0, 0])
-    history = jnp.concatenate([history, actions[:, k:k + 1]], 1)[:, 1:]
-    mask = jnp.concatenate([mask[:, 1:], jnp.ones((1, 1), bool)], 1)
-  np.testing.assert_allclose(out[0], jnp.stack(frames), rtol=1e-5, atol=1e-5)
-  np.testing.assert_allclose(_closed_loop(wm, params, context, actions, rng, h), out,
-                             rtol=1e-5, atol=1e-5)
-  with pytest.raises(ValueError, match="at least 2 context frames"):
-    rollout(wm, params, context[:, :1], actions, rng, horizon=h)
 
 
 def test_padding_does_not_change_earlier_frames_of_a_causal_model():

@@ -113,9 +113,6 @@ class DataConfig:
   frame_step: int | None = None
   resolution: tuple[int, int] | None = None  # (H, W); None: the spec's / the camera's
   frames: int = 16  # window length
-  # each window's first frame is its episode's first frame, the rest consecutive: a model that
-  # keeps its rollout's first frame in the context (:attr:`wmjax.model.WorldModel.anchored`)
-  anchor_first_frame: bool = False
   train_stride: int = 1
   eval_stride: int = 16
   normalization: str = "mean_std"  # of actions: 'mean_std' | 'bounds' | 'none'

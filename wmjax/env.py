@@ -25,7 +25,7 @@ from wmjax.data.stats import ActionStats
 from wmjax.frames import to_model
 from wmjax.model import LoadedModel, WorldModel
 from wmjax.parallel import replicated_like, shard_rollout_batch
-from wmjax.rollout import block_key, next_window, sample_block
+from wmjax.rollout import block_key, sample_block
 
 RewardFn = Callable[[np.ndarray, str | list[str] | None], np.ndarray]
 
@@ -150,7 +150,7 @@ class WorldModelEnv:
     actions_so_far = np.concatenate([self._history, actions], axis=1)
     known_so_far = np.concatenate([self._known, np.ones((b, k), bool)], axis=1)
     # laid out as reset laid it out, so that every step runs the program the first one compiled
-    self._window = jax.device_put(next_window(self.world_model, self._window, new, self.context),
+    self._window = jax.device_put(jnp.concatenate([self._window, new], axis=1)[:, -self.context:],
                                   self._window.sharding)
     between = self._window.shape[1] - 1  # actions between the window's frames
     self._history = actions_so_far[:, actions_so_far.shape[1] - between:]

@@ -30,16 +30,11 @@ Params = Any
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class WorldModel:
-  """The network, its diffusion process and how it is sampled; hashable by identity (jit-static).
-
-  ``anchored``: the network was trained on windows whose first frame is their episode's first
-  (``data.anchor_first_frame``), so a rollout keeps its first frame as the first of the context
-  for good and slides the rest (:func:`wmjax.rollout.next_window`)."""
+  """The network, its diffusion process and how it is sampled; hashable by identity (jit-static)."""
 
   network: STDiT
   process: objectives.Process
   sampler: SamplerConfig
-  anchored: bool = False
 
   def __post_init__(self):
     if self.sampler.kv_cache and not self.network.causal_temporal:
@@ -56,12 +51,7 @@ class WorldModel:
     if sampler.sampler not in process.samplers:
       raise ValueError(f"sampling.sampler={sampler.sampler!r} does not fit diffusion.kind="
                        f"{d.kind!r}; expected one of {process.samplers}")
-    anchored = bool((config.get("data") or {}).get("anchor_first_frame", False))
-    if anchored and d.get("num_context", 1) < 2:
-      raise ValueError(f"data.anchor_first_frame=True needs diffusion.num_context >= 2 (the "
-                       f"anchor and at least one recent frame before the frames the loss "
-                       f"predicts), got {d.get('num_context', 1)}")
-    return cls(STDiT(**config.model.to_dict()), process, sampler, anchored)
+    return cls(STDiT(**config.model.to_dict()), process, sampler)
 
   def init(self, rng: jax.Array, frame_shape: tuple[int, int, int], frames: int | None = None
            ) -> Params:

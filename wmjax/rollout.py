@@ -73,9 +73,6 @@ def check_rollout_inputs(world_model: WorldModel, context, actions, horizon: int
     raise ValueError("actions must hold at least one action, got N=0")
   if not isinstance(horizon, (int, np.integer)) or horizon < 1:
     raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
-  if world_model.anchored and c < 2:
-    raise ValueError(f"an anchored model keeps its first context frame and slides the others, so "
-                     f"it needs at least 2 context frames, got c={c}")
   if c + horizon > net.num_frames:
     raise ValueError(f"context + horizon = {c} + {horizon} frames exceeds the {net.num_frames} "
                      f"frames the model supports")
@@ -145,17 +142,6 @@ def block_key(rng: jax.Array, block: int | jax.Array) -> jax.Array:
   return jax.random.fold_in(rng, block)
 
 
-def next_window(world_model: WorldModel, window: jax.Array, new: jax.Array, size: int
-                ) -> jax.Array:
-  """The context after ``new [B, h, ...]`` follows ``window [B, c, ...]``: the last ``size``
-  frames of both, or for an anchored model (:attr:`WorldModel.anchored`) the first frame of
-  ``window`` and the last ``size - 1``."""
-  joined = jnp.concatenate([window, new], axis=1)
-  if not world_model.anchored or joined.shape[1] <= size:
-    return joined[:, -size:]
-  return jnp.concatenate([joined[:, :1], joined[:, 1 - size:]], axis=1)
-
-
 def _rollout(world_model: WorldModel, params: Params, context: jax.Array, actions: jax.Array,
              action_mask: jax.Array, rng: jax.Array, horizon: int, num_frames: int) -> jax.Array:
   """``actions [B, c-1+K*h, A]`` cover the context and K whole blocks; returns ``[B, c+N, ...]``."""
@@ -169,7 +155,7 @@ def _rollout(world_model: WorldModel, params: Params, context: jax.Array, action
   def body(ctx, block):
     window_actions, window_mask, key = block
     new = sample_block_traceable(world_model, params, ctx, window_actions, window_mask, key)
-    return next_window(world_model, ctx, new, c), new
+    return jnp.concatenate([ctx, new], axis=1)[:, -c:], new
 
   _, new_frames = jax.lax.scan(body, context.astype(jnp.float32),
                                (block_actions, block_mask, keys))

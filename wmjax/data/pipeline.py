@@ -44,16 +44,12 @@ class WindowSource:
   Episodes shorter than ``frames`` (and those without the spec's camera, which have length 0)
   are skipped and counted in ``num_skipped_episodes``; the short ones are logged (the cameraless
   ones were when the source was read). ``only``: the indices of the episodes to read (default
-  all). ``anchor``: each window's first frame (and its extras) is replaced by the episode's
-  first, so a window starting at step ``s`` holds steps ``0, s+1, ..., s+frames-1``; its actions
-  stay those after steps ``s, ..., s+frames-2``, each frame keeping the action that led to it.
+  all).
   """
 
   def __init__(self, episodes: ArrayRecordEpisodes, frames: int, stride: int,
-               resolution: tuple[int, int] | None, only: Sequence[int] | None = None,
-               anchor: bool = False):
+               resolution: tuple[int, int] | None, only: Sequence[int] | None = None):
     self.episodes, self.frames, self.resolution = episodes, frames, resolution
-    self.anchor = anchor
     lengths = episodes.lengths()
     kept = np.arange(len(lengths)) if only is None else np.unique(np.asarray(only, np.int64))
     if len(kept) and (kept[0] < 0 or kept[-1] >= len(lengths)):
@@ -81,14 +77,7 @@ class WindowSource:
   def __getitem__(self, k: int) -> dict[str, Any]:
     episode, start = (int(v) for v in self.index[k])
     steps = self.episodes.episode(episode, start, start + self.frames)
-    window = make_window(steps, start, self.frames, self.resolution, episode, self.spec.resize)
-    if self.anchor and start > 0:
-      first = make_window(self.episodes.episode(episode, 0, 1), 0, 1, self.resolution, episode,
-                          self.spec.resize)
-      for name, values in first.items():
-        if name in window and np.ndim(values) and len(values) == 1:
-          window[name] = np.concatenate([values, window[name][1:]])
-    return window
+    return make_window(steps, start, self.frames, self.resolution, episode, self.spec.resize)
 
 
 @dataclasses.dataclass
@@ -134,10 +123,8 @@ def open_members(data: ml_collections.ConfigDict, codec: Mapping | None,
               else open_splits(member, evaluation))
     members.append(Member(
         splits.train.spec, splits.stats,
-        WindowSource(splits.train, data.frames, member.train_stride, splits.resolution,
-                     anchor=data.anchor_first_frame),
-        WindowSource(splits.eval, data.frames, member.eval_stride, splits.resolution,
-                     anchor=data.anchor_first_frame)
+        WindowSource(splits.train, data.frames, member.train_stride, splits.resolution),
+        WindowSource(splits.eval, data.frames, member.eval_stride, splits.resolution)
         if evaluation else None,
         float(member.get("weight", 1.0)), splits.frame_shape, latents))
   if len({m.latents for m in members}) > 1:

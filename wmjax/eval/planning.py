@@ -145,11 +145,9 @@ def run_closed_loop(planner: Planner, step_fn: Callable[[np.ndarray], np.ndarray
                     initial_frames, steps: int, key: jax.Array, *, context_actions=None,
                     execute: int | None = None, context: int | None = None
                     ) -> dict[str, Any]:
-  """Model-predictive control in a real environment: plan from the newest ``context`` frames
-  (for an anchored world model, :attr:`wmjax.model.WorldModel.anchored`, the episode's first
-  frame and the newest ``context - 1``), run the best chunk's first ``execute`` actions
-  (default: the planner's horizon) through ``step_fn(actions [B, A]) -> frames [B, H, W, 3]``,
-  and replan until ``steps`` actions ran.
+  """Model-predictive control in a real environment: plan from the newest ``context`` frames,
+  run the best chunk's first ``execute`` actions (default: the planner's horizon) through
+  ``step_fn(actions [B, A]) -> frames [B, H, W, 3]``, and replan until ``steps`` actions ran.
   ``initial_frames [B, c0, H, W, 3]`` (and raw ``context_actions [B, c0-1, A]``) start the
   episodes. Returns ``frames [B, c0+steps, ...]`` (as ``step_fn`` gives them), ``actions [B,
   steps, A]`` and the list of :class:`Plan` s."""
@@ -159,11 +157,9 @@ def run_closed_loop(planner: Planner, step_fn: Callable[[np.ndarray], np.ndarray
   known_from = len(frames) - 1 - len(actions)  # frames before this have no known action
   context = context or c0
   execute = execute or planner.horizon
-  anchored = bool(getattr(planner.world_model, "anchored", False))
   plans = []
   while len(frames) - c0 < steps:
-    window = np.stack(frames[:1] + frames[len(frames) - context + 1:] if anchored
-                      else frames[-context:], 1)
+    window = np.stack(frames[-context:], 1)
     between = window.shape[1] - 1
     window_actions = None
     if between and len(frames) - context >= known_from:

@@ -41,7 +41,7 @@ from wmjax.frames import to_model
 from wmjax.model import WorldModel
 from wmjax.parallel import mesh_context, replicated_beside, shard_rollout_batch
 from wmjax.policy import join_policy, split_policy
-from wmjax.rollout import block_key, next_window, sample_block_traceable
+from wmjax.rollout import block_key, sample_block_traceable
 
 Policy = Callable[[Any, jax.Array], Any]
 
@@ -164,7 +164,7 @@ def _scan_fn(world_model, static_policy, codec, stats_key, normalization, steps,
     c = window.shape[1]
     so_far = jnp.concatenate([history, actions], 1)[:, n:]  # the last c-1 stay in the window
     known_so_far = jnp.concatenate([known, jnp.ones(actions.shape[:2], bool)], 1)[:, n:]
-    carry = (jnp.concatenate([rgb, new_rgb], 1)[:, -c:], next_window(world_model, window, new, c),
+    carry = (jnp.concatenate([rgb, new_rgb], 1)[:, -c:], jnp.concatenate([window, new], 1)[:, -c:],
              so_far, known_so_far)
     return carry, new_rgb
 
