@@ -72,8 +72,9 @@ def policy_report(model, spec: str, episodes: int, steps: int, seed: int) -> dic
   policy = simulator.policy_from_spec(spec, evaluate.policy_chunk(config))
   states = evaluate.initial_states(config, episodes, "evaluate", seed)
   key = jax.random.key(seed)
-  truth = simulator.simulate_policy(policy, states, steps, image_size=int(config.data.pusht.image_size), key=key,
-                                    context=c, action_repeat=config.data.pusht.action_repeat)
+  pusht = config.data.pusht
+  truth = simulator.simulate_policy(policy, states, steps, image_size=int(pusht.image_size),
+                                    key=key, context=c, action_repeat=pusht.action_repeat)
   imagined = policy_eval.scan_episodes(
       model.world_model, model.params, policy, truth["frames"][:, :c], steps,
       jax.random.key(seed + 1), key, horizon=h, action_stats=model.action_stats,
