@@ -26,7 +26,6 @@ import json
 import jax
 import numpy as np
 
-from wmjax.eval import policy_eval
 from wmjax.frames import to_model, to_uint8
 from wmjax.model import load_model
 from wmjax.tasks.pusht import evaluate, simulator
@@ -68,19 +67,13 @@ def frame_report(truth: np.ndarray, imagined: np.ndarray) -> dict:
 def policy_report(model, spec: str, episodes: int, steps: int, seed: int) -> dict:
   """Every generated frame's :func:`frame_report` for policy ``spec`` over ``episodes``."""
   config = model.config
-  c, h = config.rollout.context, config.rollout.horizon
+  c = config.rollout.context
   policy = simulator.policy_from_spec(spec, evaluate.policy_chunk(config))
   states = evaluate.initial_states(config, episodes, "evaluate", seed)
-  key = jax.random.key(seed)
-  pusht = config.data.pusht
-  truth = simulator.simulate_policy(policy, states, steps, image_size=int(pusht.image_size),
-                                    key=key, context=c, action_repeat=pusht.action_repeat)
-  imagined = policy_eval.scan_episodes(
-      model.world_model, model.params, policy, truth["frames"][:, :c], steps,
-      jax.random.key(seed + 1), key, horizon=h, action_stats=model.action_stats,
-      normalization=config.data.normalization, codec=model.codec,
-      context_actions=truth["actions"][:, :c - 1])
-  imagined = np.asarray(to_uint8(imagined["frames"]))
+  truth, imagined = evaluate.simulate_and_imagine(model, policy, states, steps,
+                                                  jax.random.key(seed), jax.random.key(seed + 1),
+                                                  scan=True)
+  imagined = np.asarray(to_uint8(imagined))
   frames = [frame_report(truth["frames"][:, t], imagined[:, t])
             for t in range(c, imagined.shape[1])]
   decoded = model.codec.decode(model.codec.encode(to_model(truth["frames"][:, c:])))

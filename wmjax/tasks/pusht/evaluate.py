@@ -98,6 +98,33 @@ def proposal_from_spec(spec: str, length: int) -> planning.Proposal:
   return planning.policy_proposal(pusht.policy_from_spec(spec, length))
 
 
+def simulate_and_imagine(model, policy: pusht.PolicyFn, states, steps: int,
+                         policy_key: jax.Array, rollout_key: jax.Array, *, scan: bool = False
+                         ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+  """``policy`` from ``states [N, 5]`` for ``steps`` actions in the simulator (after
+  ``rollout.context - 1`` still steps), and closed loop in the world model ``model`` from the
+  simulator's first ``context`` frames and the actions between them: ``(truth, imagined)``,
+  ``truth`` as :func:`.simulator.simulate_policy` returns it, ``imagined [N, context+steps, H, W,
+  3]`` RGB frames. ``policy_key`` draws the policy's noise in both, ``rollout_key`` the model's
+  samples; ``scan``: roll out inside one jitted scan (pure-JAX policies only), else step
+  :class:`wmjax.env.WorldModelEnv`."""
+  config = model.config
+  c, h = config.rollout.context, config.rollout.horizon
+  truth = pusht.simulate_policy(policy, states, steps, image_size=_image_size(model),
+                                key=policy_key, context=c,
+                                action_repeat=_params(config).action_repeat)
+  start, known = truth["frames"][:, :c], truth["actions"][:, :c - 1]
+  if scan:
+    imagined = policy_eval.scan_episodes(
+        model.world_model, model.params, policy, start, steps, rollout_key,
+        policy_key, horizon=h, action_stats=model.action_stats,
+        normalization=config.data.normalization, codec=model.codec, context_actions=known)
+    return truth, np.asarray(imagined["frames"])
+  env = WorldModelEnv.from_model(model, seed=rollout_key)
+  return truth, policy_eval.env_episodes(env, policy, start, steps, policy_key,
+                                         context_actions=known)["frames"]
+
+
 def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
                       rewards: dict[str, RewardFn], *, episodes: int, steps: int, seed: int = 0,
                       scan: bool = False, out: str | None = None, videos: int = 4,
@@ -121,27 +148,13 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
     raise ValueError(f"need at least 3 policies and a reward, got {len(policies)} policies and "
                      f"{len(rewards)} rewards")
   config = model.config
-  c, h = config.rollout.context, config.rollout.horizon
-  size = _image_size(model)
+  c = config.rollout.context
   states = initial_states(config, episodes, "evaluate", seed)
   names, values, block, videos_written = list(policies), {}, {}, {}
   for index, name in enumerate(names):
-    policy = policies[name]
-    policy_key = jax.random.fold_in(jax.random.key(seed), index)
-    truth = pusht.simulate_policy(policy, states, steps, image_size=size, key=policy_key,
-                                  context=c, action_repeat=_params(config).action_repeat)
-    start, known = truth["frames"][:, :c], truth["actions"][:, :c - 1]
-    rollout_key = jax.random.fold_in(jax.random.key(seed + 1), index)
-    if scan:
-      imagined = policy_eval.scan_episodes(
-          model.world_model, model.params, policy, start, steps, rollout_key,
-          policy_key, horizon=h, action_stats=model.action_stats,
-          normalization=config.data.normalization, codec=model.codec, context_actions=known)
-      imagined = np.asarray(imagined["frames"])
-    else:
-      env = WorldModelEnv.from_model(model, seed=rollout_key)
-      imagined = policy_eval.env_episodes(env, policy, start, steps, policy_key,
-                                          context_actions=known)["frames"]
+    truth, imagined = simulate_and_imagine(
+        model, policies[name], states, steps, jax.random.fold_in(jax.random.key(seed), index),
+        jax.random.fold_in(jax.random.key(seed + 1), index), scan=scan)
     values[name] = {"simulator": policy_eval.policy_value(truth["coverage"][:, -1])}
     for reward, reward_fn in rewards.items():
       values[name][reward] = {
