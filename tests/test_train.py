@@ -5,9 +5,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import tiny_config
+from conftest import perturbed, tiny_config
 from wmjax.parallel import make_mesh
 from wmjax.model import WorldModel
+from wmjax.rollout import sample_block_traceable
+from wmjax.train.self_forcing import check_self_forcing, self_forced_windows
 from wmjax.train.step import ShardedTrainer
 
 pytestmark = pytest.mark.unit
@@ -147,3 +149,64 @@ def test_gradient_accumulation_equals_the_whole_batch():
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
   with pytest.raises(ValueError, match=r"not divisible by the data-parallel size 2 x 4 micro"):
     trainer.step(accumulated, *_batch(0, batch=4))
+
+
+SELF_FORCED = OVERRIDES + ("model.num_frames=4", "data.frames=5", "diffusion.self_forcing=0.5",
+                           "sampling.num_steps=2")
+
+
+def test_self_forced_windows_replace_the_chosen_samples_last_context_frame():
+  config = tiny_config("gridworld.py", *SELF_FORCED, "diffusion.num_context=2")
+  world_model = WorldModel.from_config(config)
+  params = perturbed(world_model.init(jax.random.key(0), (8, 8, 3)), jax.random.key(1))
+  frames, actions = _batch(batch=4, frames=5)
+  key = jax.random.key(2)
+  windows, window_actions = self_forced_windows(world_model, params, frames, actions, 0.5, 2, key)
+  assert windows.shape == (4, 4, 8, 8, 3) and window_actions.shape == (4, 3, 4)
+  np.testing.assert_array_equal(window_actions, actions[:, 1:])
+  np.testing.assert_array_equal(windows[1::2], frames[1::2, 1:])  # samples 1 and 3: the data's
+  for frame in (0, 2, 3):
+    np.testing.assert_array_equal(windows[::2, frame], frames[::2, frame + 1])
+  generated = sample_block_traceable(world_model, params, frames[::2, :2], actions[::2, :2],
+                                     jnp.ones((2, 2), bool), key)
+  np.testing.assert_allclose(windows[::2, 1], generated[:, 0], rtol=1e-5, atol=1e-5)
+  assert np.abs(windows[::2, 1] - frames[::2, 2]).mean() > 0.1  # the model's, not the data's
+
+
+def test_self_forcing_starts_at_its_step_on_windows_one_frame_longer():
+  """Before ``self_forcing_start`` a step is the plain step on the data's frames 1..N; from it
+  on some samples' context frame is the model's, and the loss moves."""
+  mesh = make_mesh((2, 4, 1))
+  config = tiny_config("gridworld.py", *SELF_FORCED, "diffusion.self_forcing_start=1")
+  plain_config = tiny_config("gridworld.py", *OVERRIDES, "model.num_frames=4", "data.frames=4")
+  trainer = ShardedTrainer(WorldModel.from_config(config), config, mesh, (8, 8, 3), 5)
+  plain = ShardedTrainer(WorldModel.from_config(plain_config), plain_config, mesh, (8, 8, 3), 4)
+  state = trainer.init(jax.random.key(0))
+  weights = perturbed(state.params, jax.random.key(1))  # a fresh model's output ignores its input
+  state = jax.device_put(state.replace(params=weights, ema_params=jax.tree.map(jnp.copy, weights)),
+                         trainer.state_shardings)
+  plain_state = jax.device_put(jax.tree.map(jnp.copy, state), plain.state_shardings)  # donated
+  losses = []
+  for seed in range(2):
+    frames, actions = _batch(seed, frames=5)
+    state, metrics = trainer.step(state, frames, actions)
+    plain_state, plain_metrics = plain.step(plain_state, frames[:, 1:], actions[:, 1:])
+    losses.append((float(metrics["loss"]), float(plain_metrics["loss"])))
+  np.testing.assert_allclose(*losses[0], rtol=1e-6)
+  assert np.isfinite(losses[1][0]) and abs(losses[1][0] - losses[1][1]) > 1e-4 * losses[1][1]
+  with pytest.raises(ValueError, match="windows must hold model.num_frames \\+ 1 = 5 frames, got 4"):
+    trainer.step(state, *_batch(frames=4))
+
+
+@pytest.mark.parametrize("override, message", [
+    ("data.frames=4", "data.frames = model.num_frames \\+ 1 = 5, got data.frames=4"),
+    ("diffusion.self_forcing=0.375", "gives 3 samples with a generated frame; it must be a whole "
+                                     "divisor of the batch"),
+    ("diffusion.regime='per_frame'", "needs clean context frames to replace"),
+    ("diffusion.self_forcing=1.5", "in \\(0, 1\\]; got 1.5"),
+    ("diffusion.self_forcing_start=-1", "self_forcing_start is a train step, >= 0; got -1"),
+])
+def test_self_forcing_settings_the_data_cannot_serve_are_refused(override, message):
+  config = tiny_config("gridworld.py", *SELF_FORCED, "batch_size=8", override)
+  with pytest.raises(ValueError, match=message):
+    check_self_forcing(config)

@@ -152,6 +152,10 @@ class DiffusionConfig:
   # objects that an unweighted MSE barely sees
   object_weight: float = 0.0
   object_dilation: int = 0
+  # > 0: this fraction of each batch trains on a last context frame the model generated itself
+  # (wmjax.train.self_forcing); the data windows then hold model.num_frames + 1 frames
+  self_forcing: float = 0.0
+  self_forcing_start: int = 0  # the train step it starts at (before it the model's frames are noise)
 
 
 @dataclasses.dataclass(frozen=True)

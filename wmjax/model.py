@@ -186,7 +186,8 @@ def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
     world_model = WorldModel.from_config(config)
     frame_shape = tuple(config.frame_shape)
     abstract = nn.unbox(jax.eval_shape(
-        lambda: world_model.init(jax.random.key(0), frame_shape, config.data.frames)))
+        lambda: world_model.init(jax.random.key(0), frame_shape,
+                                 min(config.data.frames, config.model.num_frames))))
     replicated = jax.sharding.NamedSharding(local_data_mesh(), jax.sharding.PartitionSpec())
     key = "ema_params" if params == "ema" else "params"
     target = {key: abstract_with_shardings(abstract, jax.tree.map(lambda _: replicated, abstract))}

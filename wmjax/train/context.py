@@ -104,7 +104,8 @@ def compile_step(context: TrainContext, batch: int | None = None,
       "dtype": str(net.dtype),
       "attention": attention.resolve_backend(net.attention_impl, net.dtype, target.platform),
       **report,
-      "analytic_flops": 3 * forward_flops(net, batch, trainer.frames, height, width),
+      "analytic_flops": 3 * forward_flops(net, batch, trainer.frames - trainer.extra_frames,
+                                          height, width),
       "compile_s": time.perf_counter() - start,
   }
 

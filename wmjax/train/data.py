@@ -23,6 +23,7 @@ from wmjax.data.pipeline import Member, Normalize, frames_to_float, open_members
 from wmjax.data.rlds import stack_steps
 from wmjax.eval.trajectories import Trajectories
 from wmjax.frames import to_model, to_uint8
+from wmjax.train.self_forcing import check_self_forcing, model_frames
 
 
 @dataclasses.dataclass
@@ -72,7 +73,8 @@ def build_data(config: ml_collections.ConfigDict, evaluation: bool = True) -> Tr
     raise ValueError("diffusion.object_weight weighs the loss where a value stands apart from its "
                      "frame's median, which in a VAE's latents is nearly every value; set "
                      "diffusion.object_weight=0 with codec.kind='vae'")
-  if config.data.frames > config.model.num_frames:
+  check_self_forcing(config)
+  if model_frames(config) > config.model.num_frames:
     raise ValueError(f"data.frames={config.data.frames} exceeds "
                      f"model.num_frames={config.model.num_frames}")
   members = open_members(config.data, config.codec, evaluation)

@@ -57,6 +57,7 @@ from wmjax.train.checkpoint import Checkpointer, shapes_by_path
 from wmjax.train.context import TrainContext, set_up
 from wmjax.train.data import eval_trajectories
 from wmjax.train.resume import check_resume
+from wmjax.train.self_forcing import model_frames
 from wmjax.train.step import ShardedTrainer
 from wmjax.train.workdir import (METRICS_LOG, claimed, record_config_changes,
                                  truncate_metrics_log)
@@ -86,11 +87,14 @@ def validation_loss(context: TrainContext, params: Any, trajectories: Trajectori
                     rng: jax.Array, encode_rng: jax.Array) -> float:
   """The training loss of ``params`` on held-out ``trajectories`` of the training length (their
   frames in the model's space: encoded by the codec with ``encode_rng``, or their pre-encoded
-  latents), its noise drawn from ``rng``."""
+  latents; the last ``model.num_frames`` where self-forced windows hold one more), its noise
+  drawn from ``rng``."""
   config, codec = context.config, context.data.codec
   frames = (jnp.asarray(trajectories.latents) if trajectories.latents is not None
             else codec.encode(to_model(trajectories.frames, jnp), encode_rng))
-  return float(_loss(context.world_model, params, frames, jnp.asarray(trajectories.actions),
+  n = model_frames(config)
+  frames, actions = frames[:, -n:], jnp.asarray(trajectories.actions)[:, frames.shape[1] - n:]
+  return float(_loss(context.world_model, params, frames, actions,
                      rng, config.diffusion.regime, config.diffusion.num_context,
                      LevelSampling.from_config(config.diffusion)))
 

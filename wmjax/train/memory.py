@@ -26,6 +26,8 @@ import jax
 import ml_collections
 import numpy as np
 
+from wmjax.train.self_forcing import model_frames
+
 GIB = 1024 ** 3
 
 
@@ -46,7 +48,7 @@ def estimate(config: ml_collections.ConfigDict, world_model, num_devices: int | 
   model (:class:`wmjax.model.WorldModel`) is ``world_model``, on ``num_devices`` (default: all
   of this job's)."""
   net = world_model.network
-  frames = config.data.frames if "data" in config else net.num_frames
+  frames = model_frames(config) if "data" in config else net.num_frames
   shapes = jax.eval_shape(lambda: world_model.init(jax.random.key(0), tuple(config.frame_shape),
                                                    frames))
   params = sum(int(np.prod(p.shape)) for p in jax.tree.leaves(shapes))

@@ -25,6 +25,7 @@ from wmjax.diffusion import LevelSampling, masked_loss_sum, training_noise
 from wmjax.model import WorldModel
 from wmjax.nn import attention
 from wmjax.parallel import abstract_with_shardings
+from wmjax.train.self_forcing import self_forced_windows
 
 
 SCHEDULES = ("constant", "warmup", "cosine")
@@ -81,7 +82,10 @@ def make_train_step(world_model: WorldModel, config: ml_collections.ConfigDict,
                     tx: optax.GradientTransformation):
   """The pure train step ``(state, frames, actions) -> (state, metrics)``.
 
-  The randomness of the whole batch (noise levels, noise, action dropout) is drawn first; with
+  With ``diffusion.self_forcing`` the batch holds windows one frame longer than the model's,
+  and some of them get a context frame the model samples itself
+  (:mod:`wmjax.train.self_forcing`) before anything else. The randomness of the whole batch
+  (noise levels, noise, action dropout) is drawn first; with
   ``optim.grad_accum = k > 1`` the batch is then cut into k equal micro-batches whose gradients
   are summed in a ``lax.scan`` before one update, so that only one micro-batch's activations are
   alive at a time. The loss and update equal the whole batch's up to float rounding.
@@ -94,6 +98,13 @@ def make_train_step(world_model: WorldModel, config: ml_collections.ConfigDict,
   def step(state: TrainState, frames: jax.Array, actions: jax.Array):
     key = jax.random.fold_in(jax.random.wrap_key_data(state.rng), state.step)
     noise_key, dropout_key = jax.random.split(key)
+    if diffusion.self_forcing:
+      frames, actions = jax.lax.cond(
+          state.step >= diffusion.self_forcing_start,
+          lambda: self_forced_windows(world_model, state.ema_params, frames, actions,
+                                      diffusion.self_forcing, diffusion.num_context,
+                                      jax.random.fold_in(key, 1)),
+          lambda: (frames[:, 1:], actions[:, 1:]))
     b = frames.shape[0]
     levels, mask, noise = training_noise(process, noise_key, frames.shape, diffusion.regime,
                                          diffusion.num_context, level_sampling)
@@ -137,9 +148,11 @@ def make_train_step(world_model: WorldModel, config: ml_collections.ConfigDict,
 
 
 def check_batch_shapes(world_model: WorldModel, frames_shape, actions_shape, mesh: Mesh,
-                       micro_batches: int = 1, processes: int = 1) -> None:
+                       micro_batches: int = 1, processes: int = 1, extra_frames: int = 0
+                       ) -> None:
   """ValueError before compilation for a batch the model, the mesh, the number of
-  gradient-accumulation micro-batches or the ``processes`` feeding it cannot take."""
+  gradient-accumulation micro-batches or the ``processes`` feeding it cannot take; its windows
+  hold ``extra_frames`` more than the model's (1 with ``diffusion.self_forcing``)."""
   net = world_model.network
   if len(frames_shape) != 5 or len(actions_shape) != 3:
     raise ValueError(f"batch must hold frames [B, F, H, W, C] and actions [B, F-1, A], got "
@@ -147,9 +160,16 @@ def check_batch_shapes(world_model: WorldModel, frames_shape, actions_shape, mes
   if actions_shape[-1] != net.action_dim:
     raise ValueError(f"the data has {actions_shape[-1]}-dim actions but the model expects "
                      f"{net.action_dim} (model.action_dim)")
-  net.check_inputs(jax.ShapeDtypeStruct(frames_shape, jnp.float32),
-                   jax.ShapeDtypeStruct(frames_shape[:2], jnp.float32),
-                   jax.ShapeDtypeStruct(actions_shape, jnp.float32))
+  if extra_frames and frames_shape[1] != net.num_frames + extra_frames:
+    raise ValueError(f"with diffusion.self_forcing the windows must hold model.num_frames + 1 = "
+                     f"{net.num_frames + extra_frames} frames, got {frames_shape[1]}")
+  b, n = frames_shape[0], frames_shape[1] - extra_frames
+  net.check_inputs(jax.ShapeDtypeStruct((b, n) + tuple(frames_shape[2:]), jnp.float32),
+                   jax.ShapeDtypeStruct((b, n), jnp.float32),
+                   jax.ShapeDtypeStruct((b, n - 1, actions_shape[-1]), jnp.float32))
+  if actions_shape[:2] != (b, frames_shape[1] - 1):
+    raise ValueError(f"actions must be [B, F-1, A] = {(b, frames_shape[1] - 1, net.action_dim)} "
+                     f"for frames {tuple(frames_shape)}, got {tuple(actions_shape)}")
   parallel.check_batch_divisible(frames_shape[0], mesh, micro_batches, processes,
                                  what="global batch_size")
 
@@ -164,12 +184,14 @@ class ShardedTrainer:
     self.world_model, self.mesh, self.platform = world_model, mesh, platform
     self.frame_shape, self.frames = tuple(frame_shape), frames  # of the batches it trains on
     self.micro_batches = config.optim.grad_accum
+    self.extra_frames = 1 if config.diffusion.self_forcing else 0
     self.tx = make_optimizer(config.optim)
     train_step = make_train_step(world_model, config, self.tx)
 
     def init(rng):
       param_rng, state_rng = jax.random.split(rng)
-      return create_train_state(world_model.init(param_rng, frame_shape, frames), self.tx,
+      return create_train_state(world_model.init(param_rng, frame_shape,
+                                                 frames - self.extra_frames), self.tx,
                                 state_rng)
 
     with attention.platform_override(platform):
@@ -195,7 +217,7 @@ class ShardedTrainer:
 
   def step(self, state: TrainState, frames: Any, actions: Any):
     check_batch_shapes(self.world_model, frames.shape, actions.shape, self.mesh,
-                       self.micro_batches)
+                       self.micro_batches, extra_frames=self.extra_frames)
     step = self._compiled.get(_batch_key(frames, actions), self._step)
     with jax.set_mesh(self.mesh):
       return step(state, frames, actions)
@@ -206,7 +228,7 @@ class ShardedTrainer:
     ``.memory_analysis()`` gives its per-device argument, output and temporary bytes; the batch
     is checked first against the model, the mesh and this job's processes."""
     check_batch_shapes(self.world_model, frames.shape, actions.shape, self.mesh,
-                       self.micro_batches, jax.process_count())
+                       self.micro_batches, jax.process_count(), self.extra_frames)
     key = _batch_key(frames, actions)
     if key not in self._compiled:
       with jax.set_mesh(self.mesh), attention.platform_override(self.platform):
