@@ -1,14 +1,19 @@
 """Sharded training: the same parameters on any mesh, and errors before compilation."""
 
+from types import SimpleNamespace
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from conftest import perturbed, tiny_config
+from wmjax.codecs import PixelCodec
+from wmjax.eval.trajectories import Trajectories
 from wmjax.parallel import make_mesh
 from wmjax.model import WorldModel
 from wmjax.rollout import sample_block_traceable
+from wmjax.train.loop import validation_loss
 from wmjax.train.self_forcing import check_self_forcing, self_forced_windows
 from wmjax.train.step import ShardedTrainer
 
@@ -210,3 +215,25 @@ def test_self_forcing_settings_the_data_cannot_serve_are_refused(override, messa
   config = tiny_config("gridworld.py", *SELF_FORCED, "batch_size=8", override)
   with pytest.raises(ValueError, match=message):
     check_self_forcing(config)
+
+
+def test_self_forced_runs_validate_on_the_last_model_window_of_their_longer_windows():
+  """The validation loss of a self-forced run is the plain loss on its windows' last
+  ``model.num_frames`` frames: the data's frames, no generated one."""
+  config = tiny_config("gridworld.py", *SELF_FORCED)
+  plain_config = tiny_config("gridworld.py", *OVERRIDES, "model.num_frames=4", "data.frames=4")
+  world_model = WorldModel.from_config(config)
+  params = perturbed(world_model.init(jax.random.key(0), (8, 8, 3)), jax.random.key(1))
+  frames, actions = _batch(batch=4, frames=5)
+  uint8 = np.asarray((frames + 1) * 127.5, np.uint8)
+  held_out = Trajectories(uint8, np.asarray(actions), np.full(4, 5), {}, np.arange(4),
+                          np.zeros(4, int))
+  shorter = Trajectories(uint8[:, 1:], np.asarray(actions[:, 1:]), np.full(4, 4), {},
+                         np.arange(4), np.zeros(4, int))
+
+  def loss(config, trajectories):
+    context = SimpleNamespace(config=config, world_model=world_model,
+                              data=SimpleNamespace(codec=PixelCodec()))
+    return validation_loss(context, params, trajectories, jax.random.key(3), jax.random.key(4))
+
+  np.testing.assert_allclose(loss(config, held_out), loss(plain_config, shorter), rtol=1e-6)
