@@ -37,9 +37,10 @@ Profiles (``configs/pusht.py:PROFILE``):
   Twice the 1500 steps it first had: the imagined agent within 2.5 px instead of 6-7 and the
   pushed T a little better (two training seeds). From step 750 a quarter of each batch trains on a
   last context frame the model generated itself (``diffusion.self_forcing=0.25``, windows of 4
-  frames): screened at step 1500 in two training seeds, the untouched T's outline fades half as
-  fast and the T at the end of ``stay`` is 0.82 in both (0.71 and 0.77 without); the pushed T is
-  no better. The whole experiment, before self-forcing, took 61 minutes on 2 CPU
+  frames): screened at step 1500 in two training seeds, the untouched T's outline fades a third to
+  a half slower and the T at the end of ``stay`` is 0.82 in both (0.71 and 0.77 without; at step
+  3000 0.81 against 0.75); the pushed T is no better. Each self-forced step costs about a sixth
+  more. The whole experiment, before self-forcing, took 61 minutes on 2 CPU
   cores (2026-11-28, alone, data to planning at K = 50). It ranks the five policies as the simulator does
   but for one swap of two policies within a standard error of each other (Pearson 0.949 and
   0.936, Spearman 0.9); its pushed T still turns into a blob at contact (IoU 0.40 and 0.34 at the
