@@ -83,12 +83,12 @@ TIERS = ("unit", "integration")
 # The README's test command gives each pytest-xdist worker whole modules (--dist loadfile), by
 # default the modules with the most tests first, which leaves the few long modules (the overfit
 # test, the notebooks) to the end, on one worker while the other idles. The longest modules go
-# first instead (the 2026-11-26 durations in benchmarks/RESULTS.md), the others after them in
-# file order.
-LONGEST_MODULES = ("test_pusht.py", "test_fit.py", "test_notebooks.py", "test_recipes.py",
-                   "test_dit.py", "test_train.py", "test_run_integrity.py", "test_train_loop.py",
-                   "test_overfit.py", "test_documentation.py", "test_evaluate.py",
-                   "test_rollout.py")
+# first instead, longest first (the 2026-11-29 durations in benchmarks/RESULTS.md), the others
+# after them in file order.
+LONGEST_MODULES = ("test_pusht.py", "test_dit.py", "test_run_integrity.py", "test_recipes.py",
+                   "test_train_loop.py", "test_fit.py", "test_rollout.py", "test_documentation.py",
+                   "test_train.py", "test_evaluate.py", "test_notebooks.py", "test_data_specs.py",
+                   "test_vae.py", "test_overfit.py")
 
 
 def pytest_configure(config):
