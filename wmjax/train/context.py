@@ -27,6 +27,7 @@ from wmjax.model import WorldModel
 from wmjax.nn import attention, forward_flops
 from wmjax.train import fit
 from wmjax.train.data import TrainData, build_data
+from wmjax.train.self_forcing import model_frames
 from wmjax.train.step import ShardedTrainer
 
 
@@ -104,8 +105,8 @@ def compile_step(context: TrainContext, batch: int | None = None,
       "dtype": str(net.dtype),
       "attention": attention.resolve_backend(net.attention_impl, net.dtype, target.platform),
       **report,
-      "analytic_flops": 3 * forward_flops(net, batch, trainer.frames - trainer.extra_frames,
-                                          height, width),
+      "analytic_flops": 3 * forward_flops(net, batch, model_frames(context.config), height,
+                                          width),
       "compile_s": time.perf_counter() - start,
   }
 

@@ -79,7 +79,7 @@ def self_forced_windows(world_model: WorldModel, params: Any, frames: jax.Array,
   count = generated_count(b, fraction)
   chosen = jnp.arange(count) * (b // count)
   generated = sample_block_traceable(
-      world_model, jax.lax.stop_gradient(params), frames[chosen, :c], actions[chosen, :c],
+      world_model, params, frames[chosen, :c], actions[chosen, :c],
       jnp.ones((count, c), bool), rng)  # [count, 1, H, W, C]
   windows = frames[:, 1:].at[chosen, c - 1].set(jax.lax.stop_gradient(generated[:, 0]))
   return windows, actions[:, 1:]
