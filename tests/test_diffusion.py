@@ -9,7 +9,7 @@ from wmjax.diffusion import (FlowMatching, GaussianDiffusion, LevelSampling, Sam
                              classifier_free_guidance, context_inputs, ddim_step, diffusion_loss,
                              make_betas, masked_loss_sum, sample_window, scheduling_matrix,
                              training_levels, window_denoiser)
-from wmjax.diffusion.objectives import motion_weights, object_weights
+from wmjax.diffusion.objectives import object_weights
 from wmjax.diffusion import schedules
 
 pytestmark = pytest.mark.unit
@@ -311,19 +311,6 @@ def test_object_weights_come_from_the_previous_frame():
   assert loss((5, 5), 0.0) == pytest.approx(loss((0, 5), 0.0))
 
 
-def test_motion_weights_come_from_the_two_frames_before():
-  """A 1-pixel object moves between frames 0 and 1: frame 2's values within ``dilation`` of
-  where it was and where it went weigh 1 + w, whatever frame 2 shows; frames 0 and 1 weigh 1."""
-  x0 = -np.ones((1, 3, 6, 6, 3), np.float32)
-  x0[0, 0, 1, 1] = x0[0, 1, 1, 2] = 1.0
-  x0[0, 2, 4, 4] = 1.0  # frame 2's own change does not count
-  weights = np.asarray(motion_weights(jnp.asarray(x0), 9.0, 0.3, 1))[..., 0]
-  assert weights.shape == (1, 3, 6, 6) and (weights[0, :2] == 1).all()
-  assert (weights[0, 2, 0:3, 0:4] == 10).all() and (weights[0, 2] == 10).sum() == 12
-  assert (np.asarray(motion_weights(jnp.asarray(x0), 9.0, 0.3, 0))[0, 2, ..., 0] == 10).sum() == 2
-  assert (np.asarray(motion_weights(jnp.asarray(x0), 9.0, 2.5, 1)) == 1).all()  # under threshold
-
-
 def test_regression_process_is_one_deterministic_step():
   from wmjax.diffusion import Regression, make_process
   process = make_process("regression")
@@ -344,17 +331,3 @@ def test_regression_process_is_one_deterministic_step():
   np.testing.assert_allclose(out, 0.5)
   with pytest.raises(ValueError, match="num_steps must be 1"):
     process.sampling_levels(10)
-
-
-@pytest.mark.parametrize("change,match", [
-    ({"diffusion.motion_weight": -1.0}, "must be >= 0"),
-    ({"diffusion.num_context": 1}, "num_context >= 2"),
-    ({"diffusion.regime": "'per_frame'"}, "regime 'irasim' or 'autoregressive'")])
-def test_motion_weight_refuses_settings_that_weigh_by_a_noised_frame(change, match):
-  from conftest import ROOT
-  from wmjax.config import load_config
-  from wmjax.train.data import build_data
-  values = {"diffusion.motion_weight": 4.0, **change}
-  config = load_config(str(ROOT / "configs" / "pusht.py"), [f"{k}={v}" for k, v in values.items()])
-  with pytest.raises(ValueError, match=match):
-    build_data(config)

@@ -152,12 +152,6 @@ class DiffusionConfig:
   # objects that an unweighted MSE barely sees
   object_weight: float = 0.0
   object_dilation: int = 0
-  # > 0: the loss weighs the values where the two frames before a frame differ by more than
-  # motion_threshold (model units) by 1 + motion_weight, grown by motion_dilation values
-  # (wmjax.diffusion.motion_weights): where the context moved, and contact happens
-  motion_weight: float = 0.0
-  motion_threshold: float = 0.3
-  motion_dilation: int = 1
   # > 0: this fraction of each batch trains on a last context frame the model generated itself
   # (wmjax.train.self_forcing); the data windows then hold model.num_frames + 1 frames
   self_forcing: float = 0.0

@@ -375,42 +375,18 @@ def object_weights(x0: jax.Array, object_weight: float, dilation: int) -> jax.Ar
   return 1.0 + object_weight * objects
 
 
-def motion_weights(x0: jax.Array, motion_weight: float, threshold: float, dilation: int
-                   ) -> jax.Array:
-  """Per-value loss weights ``[B, T, H, W, 1]`` of a clean video ``x0 [B, T, H, W, C]``:
-  ``1 + motion_weight`` where the two frames before a frame differ by more than ``threshold`` in
-  some channel (what moved into the last context frame: an agent, and an object it pushes), grown
-  by ``dilation`` values; 1 elsewhere and on the first two frames.
-
-  Like :func:`object_weights` they are read from frames the network sees clean as context, so
-  they do not move the loss's minimiser: they put more of the training signal where the next
-  frame's change is likely to be, the contact that a loss averaged over the frame barely sees."""
-  moved = jnp.max(jnp.abs(x0[:, 1:-1] - x0[:, :-2]), axis=-1, keepdims=True) > threshold
-  moved = moved.astype(jnp.float32)
-  if dilation:
-    size = 2 * dilation + 1
-    moved = jax.lax.reduce_window(moved, 0.0, jax.lax.max, (1, 1, size, size, 1), (1,) * 5, "SAME")
-  moved = jnp.concatenate([jnp.zeros_like(moved[:, :1])] * 2 + [moved], axis=1)
-  return 1.0 + motion_weight * moved
-
-
 def masked_loss_sum(denoise_fn: Callable[[jax.Array, jax.Array], jax.Array], process: Process,
                     x0: jax.Array, levels: jax.Array, noise: jax.Array, mask: jax.Array,
-                    object_weight: float = 0.0, object_dilation: int = 0, *,
-                    motion_weight: float = 0.0, motion_threshold: float = 0.3,
-                    motion_dilation: int = 1) -> tuple[jax.Array, jax.Array]:
+                    object_weight: float = 0.0, object_dilation: int = 0
+                    ) -> tuple[jax.Array, jax.Array]:
   """(sum over the loss frames of the per-frame MSE, per-frame MSE ``[B, T]``) for given levels
   and noise; summing it over slices of a batch and dividing by ``mask.sum()`` of the whole batch
   gives :func:`diffusion_loss` of the whole batch (gradient accumulation). ``object_weight > 0``
-  weights the values near the objects of the previous frame (:func:`object_weights`),
-  ``motion_weight > 0`` those where the context moved (:func:`motion_weights`)."""
+  weights the values near the objects of the previous frame (:func:`object_weights`)."""
   b, t = x0.shape[:2]
   out = denoise_fn(process.add_noise(x0, levels, noise.astype(x0.dtype)), levels)
   err = jnp.square(out.astype(jnp.float32) - process.target(x0, noise.astype(x0.dtype), levels))
   if object_weight:
     err = err * object_weights(x0.astype(jnp.float32), object_weight, object_dilation)
-  if motion_weight:
-    err = err * motion_weights(x0.astype(jnp.float32), motion_weight, motion_threshold,
-                               motion_dilation)
   per_frame = err.reshape(b, t, -1).mean(-1)
   return (per_frame * mask).sum(), per_frame

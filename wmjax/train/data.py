@@ -63,22 +63,6 @@ def _check_member(member: Member, config: ml_collections.ConfigDict, codec: Code
                      f"model.action_dim={config.model.action_dim}")
 
 
-def _check_motion_weight(diffusion: ml_collections.ConfigDict) -> None:
-  """ValueError for ``diffusion.motion_weight`` settings that would weigh the loss by a noised
-  frame (which moves the loss's minimiser) or by nothing."""
-  if not diffusion.motion_weight:
-    return
-  if diffusion.motion_weight < 0 or diffusion.motion_threshold < 0 or diffusion.motion_dilation < 0:
-    raise ValueError(f"diffusion.motion_weight, motion_threshold and motion_dilation must be >= 0; "
-                     f"got {diffusion.motion_weight}, {diffusion.motion_threshold}, "
-                     f"{diffusion.motion_dilation}")
-  if diffusion.regime not in ("irasim", "autoregressive") or diffusion.num_context < 2:
-    raise ValueError(f"diffusion.motion_weight reads the two frames before each loss frame, which "
-                     f"must be clean context: diffusion.regime 'irasim' or 'autoregressive' with "
-                     f"num_context >= 2; got regime {diffusion.regime!r}, num_context "
-                     f"{diffusion.num_context}")
-
-
 def build_data(config: ml_collections.ConfigDict, evaluation: bool = True) -> TrainData:
   """Window sources and action statistics of every member
   (:func:`wmjax.data.pipeline.open_members`), checked against the model before anything
@@ -90,7 +74,6 @@ def build_data(config: ml_collections.ConfigDict, evaluation: bool = True) -> Tr
                      "frame's median, which in a VAE's latents is nearly every value; set "
                      "diffusion.object_weight=0 with codec.kind='vae'")
   check_self_forcing(config)
-  _check_motion_weight(config.diffusion)
   if model_frames(config) > config.model.num_frames:
     raise ValueError(f"data.frames={config.data.frames} exceeds "
                      f"model.num_frames={config.model.num_frames}")

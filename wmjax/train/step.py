@@ -116,9 +116,7 @@ def make_train_step(world_model: WorldModel, config: ml_collections.ConfigDict,
       denoise = lambda x, lvl: net.apply({"params": params}, x, process.model_time(lvl), a,
                                          drop_actions=drop)
       return masked_loss_sum(denoise, process, x0, lv, nz, m, diffusion.object_weight,
-                             diffusion.object_dilation, motion_weight=diffusion.motion_weight,
-                             motion_threshold=diffusion.motion_threshold,
-                             motion_dilation=diffusion.motion_dilation)[0] / normalizer
+                             diffusion.object_dilation)[0] / normalizer
 
     grad_fn = jax.value_and_grad(loss_sum)
     batch = (frames, actions, levels, mask, noise, dropped)
