@@ -57,6 +57,18 @@ def tiny_config(config: str = "irasim.py:S", *overrides: str):
   return load_config(str(ROOT / "configs" / config), TINY + overrides)
 
 
+# the sharded-training tests' tiny gridworld model (8x8x3 frames, 4-dim actions) and its batches
+TRAIN_OVERRIDES = ("model.in_channels=3", "model.action_dim=4", "model.hidden_size=32",
+                   "model.num_heads=4", "optim.grad_clip=0.1")
+
+
+def train_batch(seed=0, batch=8, frames=4):
+  """Random (frames ``[batch, frames, 8, 8, 3]`` in [-1, 1], actions ``[batch, frames - 1, 4]``)."""
+  k1, k2 = jax.random.split(jax.random.key(seed))
+  return (jax.random.uniform(k1, (batch, frames, 8, 8, 3), minval=-1, maxval=1),
+          jax.random.normal(k2, (batch, frames - 1, 4)))
+
+
 @functools.partial(jax.jit, static_argnames="scale")
 def perturbed(params, key, scale: float = 0.1):
   """Add noise to every parameter: adaLN-Zero makes a fresh model ignore its conditioning."""

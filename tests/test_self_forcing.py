@@ -8,8 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import perturbed, tiny_config
-from test_train import OVERRIDES, _batch
+from conftest import TRAIN_OVERRIDES, perturbed, tiny_config, train_batch
 from wmjax.codecs import PixelCodec
 from wmjax.eval.trajectories import Trajectories
 from wmjax.model import WorldModel
@@ -21,15 +20,15 @@ from wmjax.train.step import ShardedTrainer
 
 pytestmark = pytest.mark.unit
 
-SELF_FORCED = OVERRIDES + ("model.num_frames=4", "data.frames=5", "diffusion.self_forcing=0.5",
-                           "sampling.num_steps=2")
+SELF_FORCED = TRAIN_OVERRIDES + ("model.num_frames=4", "data.frames=5",
+                                 "diffusion.self_forcing=0.5", "sampling.num_steps=2")
 
 
 def test_self_forced_windows_replace_the_chosen_samples_last_context_frame():
   config = tiny_config("gridworld.py", *SELF_FORCED, "diffusion.num_context=2")
   world_model = WorldModel.from_config(config)
   params = perturbed(world_model.init(jax.random.key(0), (8, 8, 3)), jax.random.key(1))
-  frames, actions = _batch(batch=4, frames=5)
+  frames, actions = train_batch(batch=4, frames=5)
   key = jax.random.key(2)
   windows, window_actions = jax.jit(self_forced_windows, static_argnums=(0, 4, 5))(
       world_model, params, frames, actions, 0.5, 2, key)
@@ -53,7 +52,7 @@ def test_self_forcing_starts_at_its_step_on_windows_one_frame_longer():
   weights = perturbed(state.params, jax.random.key(1))  # a fresh model's output ignores its input
   state = jax.device_put(state.replace(params=weights, ema_params=jax.tree.map(jnp.copy, weights)),
                          trainer.state_shardings)
-  frames, actions = _batch(frames=5)
+  frames, actions = train_batch(frames=5)
   other_first = frames.at[:, 0].set(-frames[:, 0])
   losses = []
   for _ in range(2):  # steps 0 and 1
@@ -64,7 +63,7 @@ def test_self_forcing_starts_at_its_step_on_windows_one_frame_longer():
   assert losses[0][0] == losses[0][1]
   assert np.isfinite(losses[1][0]) and abs(losses[1][0] - losses[1][1]) > 1e-4 * losses[1][0]
   with pytest.raises(ValueError, match="windows must hold model.num_frames \\+ 1 = 5 frames, got 4"):
-    trainer.step(state, *_batch(frames=4))
+    trainer.step(state, *train_batch(frames=4))
 
 
 @pytest.mark.parametrize("override, message", [
@@ -85,10 +84,11 @@ def test_self_forced_runs_validate_on_the_last_model_window_of_their_longer_wind
   """The validation loss of a self-forced run is the plain loss on its windows' last
   ``model.num_frames`` frames: the data's frames, no generated one."""
   config = tiny_config("gridworld.py", *SELF_FORCED)
-  plain_config = tiny_config("gridworld.py", *OVERRIDES, "model.num_frames=4", "data.frames=4")
+  plain_config = tiny_config("gridworld.py", *TRAIN_OVERRIDES, "model.num_frames=4",
+                             "data.frames=4")
   world_model = WorldModel.from_config(config)
   params = perturbed(world_model.init(jax.random.key(0), (8, 8, 3)), jax.random.key(1))
-  frames, actions = _batch(batch=4, frames=5)
+  frames, actions = train_batch(batch=4, frames=5)
   uint8 = np.asarray((frames + 1) * 127.5, np.uint8)
   held_out = Trajectories(uint8, np.asarray(actions), np.full(4, 5), {}, np.arange(4),
                           np.zeros(4, int))

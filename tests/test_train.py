@@ -5,30 +5,21 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import tiny_config
+from conftest import TRAIN_OVERRIDES, tiny_config, train_batch
 from wmjax.parallel import make_mesh
 from wmjax.model import WorldModel
 from wmjax.train.step import ShardedTrainer
 
 pytestmark = pytest.mark.unit
 
-OVERRIDES = ("model.in_channels=3", "model.action_dim=4", "model.hidden_size=32",
-             "model.num_heads=4", "optim.grad_clip=0.1")
-
-
-def _batch(seed=0, batch=8, frames=4):
-  k1, k2 = jax.random.split(jax.random.key(seed))
-  return (jax.random.uniform(k1, (batch, frames, 8, 8, 3), minval=-1, maxval=1),
-          jax.random.normal(k2, (batch, frames - 1, 4)))
-
 
 def _train(mesh_shape, devices=None, steps=3):
-  config = tiny_config("gridworld.py", *OVERRIDES)
+  config = tiny_config("gridworld.py", *TRAIN_OVERRIDES)
   mesh = make_mesh(mesh_shape, devices)
   trainer = ShardedTrainer(WorldModel.from_config(config), config, mesh, (8, 8, 3), 4)
   state = trainer.init(jax.random.key(0))
   for i in range(steps):
-    state, metrics = trainer.step(state, *_batch(i))
+    state, metrics = trainer.step(state, *train_batch(i))
   return state, metrics
 
 
@@ -50,11 +41,11 @@ def test_sharded_equals_unsharded():
 
 
 def test_bad_batches_fail_before_compilation():
-  config = tiny_config("gridworld.py", *OVERRIDES)
+  config = tiny_config("gridworld.py", *TRAIN_OVERRIDES)
   trainer = ShardedTrainer(WorldModel.from_config(config), config, make_mesh((2, 4, 1)),
                            (8, 8, 3), 4)
   state = trainer.init(jax.random.key(0))
-  frames, actions = _batch()
+  frames, actions = train_batch()
   with pytest.raises(ValueError, match="the data has 7-dim actions but the model expects 4"):
     trainer.step(state, frames, jnp.zeros((8, 3, 7)))
   with pytest.raises(ValueError, match="global batch_size 6 is not divisible by the data-parallel size 8"):
@@ -92,8 +83,8 @@ def test_sharded_training_with_splash_attention_equals_xla():
   train step: the same loss and parameters as XLA attention. 16x16 frames of 1x1 patches make
   256-token spatial sequences, so the kernel really runs (Pallas interpret mode on CPU)."""
   def train(backend):
-    config = tiny_config("gridworld.py", *OVERRIDES, "model.patch_size=1", "model.remat='dots'",
-                         f"model.attention_impl={backend!r}")
+    config = tiny_config("gridworld.py", *TRAIN_OVERRIDES, "model.patch_size=1",
+                         "model.remat='dots'", f"model.attention_impl={backend!r}")
     trainer = ShardedTrainer(WorldModel.from_config(config), config, make_mesh((4, 1, 2)),
                              (16, 16, 3), 3)
     state = trainer.init(jax.random.key(0))
@@ -112,10 +103,10 @@ def test_sharded_training_with_splash_attention_equals_xla():
 def test_compiled_step_is_reused_and_matches_the_jitted_step():
   """``ShardedTrainer.compile`` (what a memory check compiles) runs the same step as ``step``,
   and later steps with that batch shape run the compiled program instead of compiling again."""
-  config = tiny_config("gridworld.py", *OVERRIDES)
+  config = tiny_config("gridworld.py", *TRAIN_OVERRIDES)
   trainer = ShardedTrainer(WorldModel.from_config(config), config, make_mesh((2, 4, 1)),
                            (8, 8, 3), 4)
-  frames, actions = _batch()
+  frames, actions = train_batch()
   reference, ref_metrics = trainer.step(trainer.init(jax.random.key(0)), frames, actions)
   state = trainer.init(jax.random.key(0))
   compiled = trainer.compile(state, frames, actions)
@@ -133,12 +124,12 @@ def test_gradient_accumulation_equals_the_whole_batch():
   gradient norm and parameters as the whole batch (float rounding aside), on a sharded mesh."""
   results = []
   for micro in (1, 4):
-    config = tiny_config("gridworld.py", *OVERRIDES, f"optim.grad_accum={micro}")
+    config = tiny_config("gridworld.py", *TRAIN_OVERRIDES, f"optim.grad_accum={micro}")
     trainer = ShardedTrainer(WorldModel.from_config(config), config, make_mesh((2, 1, 1),
                              jax.devices()[:2]), (8, 8, 3), 4)
     state = trainer.init(jax.random.key(0))
     for i in range(2):
-      state, metrics = trainer.step(state, *_batch(i))
+      state, metrics = trainer.step(state, *train_batch(i))
     results.append((state, metrics))
   (whole, whole_metrics), (accumulated, metrics) = results
   np.testing.assert_allclose(metrics["loss"], whole_metrics["loss"], rtol=1e-5)
@@ -146,5 +137,5 @@ def test_gradient_accumulation_equals_the_whole_batch():
   for a, b in zip(jax.tree.leaves(accumulated.params), jax.tree.leaves(whole.params)):
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
   with pytest.raises(ValueError, match=r"not divisible by the data-parallel size 2 x 4 micro"):
-    trainer.step(accumulated, *_batch(0, batch=4))
+    trainer.step(accumulated, *train_batch(0, batch=4))
 
