@@ -649,6 +649,34 @@ def test_probe_split_by_motion_measures_the_t_move_into_the_first_generated_fram
   assert copy[0] == 1.0 and copy[1] < 0.5
 
 
+def _evaluation(iou, angle, imagined, simulator, seed=0):
+  """A ``wmjax eval-policy`` result of one policy, ``push``, with these per-episode values."""
+  coverage = {"agreement": {"pearson": 0.9, "spearman": 1.0},
+              "agreement_ci95": {"pearson": [0.5, 0.99]}}
+  block = {"world_model": {"end_per_episode": {"block_iou": iou, "block_angle_error_deg": angle}}}
+  return {"seed": seed, "rewards": {"coverage": coverage},
+          "policies": {"push": {"block": block, "coverage": {
+              "world_model": {"per_episode": imagined},
+              "simulator_reward": {"per_episode": simulator}}}}}
+
+
+@pytest.mark.unit
+def test_paired_comparison_differences_episode_by_episode_and_refuses_other_start_states():
+  """``experiments/pusht/paired.py``: the T's IoU and angle error of A less B per episode (an
+  episode where either drew no T has no angle and is left out), and each model's imagined value
+  less the simulator's."""
+  module = pusht_experiment_script("paired")
+  a = _evaluation([0.5, 0.7, 0.6], [10.0, float("nan"), 30.0], [0.4, 0.4, 0.4], [0.1, 0.2, 0.3])
+  b = _evaluation([0.4, 0.4, 0.4], [20.0, 50.0, 60.0], [0.1, 0.2, 0.3], [0.1, 0.2, 0.3])
+  row = module.paired_table(a, b).splitlines()[-1].split(" | ")
+  assert row[0] == "| push" and row[1] == "0.600 / 0.400"
+  assert row[2] == "+0.200 ± 0.058"  # differences 0.1, 0.3, 0.2
+  assert row[4] == "-20.0 ± 10.0"  # episodes 1 and 3 only: -10 and -30
+  assert row[5] == "+0.200 ± 0.058" and row[6].startswith("+0.000 ± 0.000")
+  with pytest.raises(ValueError, match="start states"):
+    module.paired_table(a, _evaluation([0.4] * 3, [1.0] * 3, [0.1] * 3, [0.1] * 3, seed=1))
+
+
 @pytest.mark.unit
 def test_lost_pixels_tells_a_fading_outline_from_a_moved_t():
   """``experiments/pusht/lost_pixels.py``: a T whose outline is painted lighter loses exactly its
