@@ -226,11 +226,6 @@ def test_training_regimes():
   assert (jnp.diff(sorted_levels, axis=1) >= 0).all()  # never cleaner than an earlier frame
   np.testing.assert_array_equal(sorted_levels, jnp.sort(levels, axis=1))  # the same draws
   assert (levels != sorted_levels).any()
-  levels, mask = training_levels(gauss, rng, 64, 6, "context_monotone", num_context=2)
-  assert (levels[:, :2] == -1).all() and (levels[:, 2:] >= 0).all()  # a clean context
-  assert (jnp.diff(levels[:, 2:], axis=1) >= 0).all()  # then never cleaner than a frame before
-  assert (levels[:, 5] != levels[:, 2]).mean() > 0.9  # independent draws, sorted
-  np.testing.assert_array_equal(mask, jnp.tile(jnp.array([0, 0, 1, 1, 1, 1.0]), (64, 1)))
   levels, mask = training_levels(gauss, rng, 256, 6, "autoregressive", num_context=2)
   target = mask.argmax(axis=1)
   np.testing.assert_array_equal(mask.sum(axis=1), 1)  # one frame in the loss

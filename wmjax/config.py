@@ -139,8 +139,7 @@ class DiffusionConfig:
   num_timesteps: int = 1000
   prediction: str = "eps"  # gaussian: 'eps' | 'x0' | 'v'
   # 'per_frame' (diffusion forcing) | 'monotone' (sorted) | 'irasim' | 'autoregressive' (one
-  # noised frame after a clean past) | 'context_monotone' (num_context clean frames, then
-  # 'monotone' frames, all in the loss)
+  # noised frame after a clean past)
   regime: str = "per_frame"
   num_context: int = 1  # context frames the loss leaves out
   # how a noisy frame's training level is drawn (wmjax.diffusion.LevelSampling): 'default' (the

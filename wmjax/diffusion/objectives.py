@@ -27,7 +27,7 @@ import numpy as np
 from wmjax.diffusion import schedules
 
 PREDICTIONS = ("eps", "v", "x0")
-NOISE_REGIMES = ("irasim", "per_frame", "monotone", "context_monotone", "autoregressive")
+NOISE_REGIMES = ("irasim", "per_frame", "monotone", "autoregressive")
 LEVEL_DISTRIBUTIONS = ("default", "uniform", "logit_normal")
 
 
@@ -276,8 +276,6 @@ def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,
   scheduling matrix (full sequence, pyramid, autoregressive); under causal attention a frame's
   prediction then always comes from a past at most as noisy as itself, and no training goes to
   a later frame cleaner than an earlier one, which sampling never shows.
-  ``context_monotone``: the first ``num_context`` frames clean and out of the loss, as sampling
-  gives them; the frames after them ``monotone`` and every one in the loss.
   ``autoregressive`` (teacher forcing): one frame ``k >= num_context`` per sample, drawn
   uniformly, is noised and alone in the loss; the frames before it are clean. That is what
   sampling one frame after the other (the ``autoregressive`` scheduling matrix) asks of a causal
@@ -289,7 +287,7 @@ def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,
     if regime == "monotone":
       levels = jnp.sort(levels, axis=1)
     return levels, jnp.ones((batch, frames), jnp.float32)
-  if regime in ("irasim", "autoregressive", "context_monotone"):
+  if regime in ("irasim", "autoregressive"):
     if not 0 < num_context < frames:
       raise ValueError(f"num_context must be in [1, {frames - 1}] for {frames} frames, "
                        f"got {num_context}")
@@ -300,14 +298,9 @@ def training_levels(process: Process, rng: jax.Array, batch: int, frames: int,
       levels = process.sample_levels(level_key, (batch, frames), sampling)
       levels = jnp.where(steps < target, jnp.asarray(process.clean_level, levels.dtype), levels)
       return levels, (steps == target).astype(jnp.float32)
-    is_context = jnp.arange(frames)[None, :] < num_context
-    clean = jnp.asarray(process.clean_level)
-    if regime == "context_monotone":
-      levels = jnp.sort(process.sample_levels(rng, (batch, frames - num_context), sampling), axis=1)
-      levels = jnp.concatenate([jnp.full((batch, num_context), clean, levels.dtype), levels], 1)
-      return levels, jnp.broadcast_to(~is_context, (batch, frames)).astype(jnp.float32)
     shared = process.sample_levels(rng, (batch, 1), sampling)
-    levels = jnp.where(is_context, clean.astype(shared.dtype), shared)
+    is_context = jnp.arange(frames)[None, :] < num_context
+    levels = jnp.where(is_context, jnp.asarray(process.clean_level, shared.dtype), shared)
     return levels, jnp.broadcast_to(~is_context, (batch, frames)).astype(jnp.float32)
   raise ValueError(f"noise regime must be one of {NOISE_REGIMES}, got {regime!r}")
 

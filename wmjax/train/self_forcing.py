@@ -21,7 +21,7 @@ import ml_collections
 from wmjax.model import WorldModel
 from wmjax.rollout import sample_block_traceable
 
-REGIMES = ("irasim", "autoregressive", "context_monotone")  # the context frames are clean
+REGIMES = ("irasim", "autoregressive")  # the context frames are clean
 
 
 def check_self_forcing(config: ml_collections.ConfigDict) -> None:
