@@ -16,9 +16,13 @@ import json
 
 import numpy as np
 
+from wmjax.eval.metrics import mean_stderr
 
-def _stderr(x: np.ndarray) -> float:
-  return float(np.std(x, ddof=1) / np.sqrt(len(x)))
+
+def _cell(values: np.ndarray, digits: int) -> str:
+  """``mean ± standard error`` of ``values`` over episodes, NaNs (no T drawn) left out."""
+  mean, stderr = mean_stderr(values)
+  return f"{mean:+.{digits}f} ± {stderr:.{digits}f}"
 
 
 def _end(result: dict, policy: str, metric: str) -> np.ndarray:
@@ -46,16 +50,12 @@ def paired_table(a: dict, b: dict) -> str:
             "value bias A | value bias B |", "|---|---|---|---|---|---|---|"]
   for policy in a["policies"]:
     iou_a, iou_b = _end(a, policy, "block_iou"), _end(b, policy, "block_iou")
-    ang_a = _end(a, policy, "block_angle_error_deg")
+    ang_a = _end(a, policy, "block_angle_error_deg")  # NaN where a model drew no T
     ang_b = _end(b, policy, "block_angle_error_deg")
-    both = ~np.isnan(ang_a - ang_b)  # no angle where a model drew no T
-    bias_a, bias_b = _bias(a, policy), _bias(b, policy)
     lines.append(
-        f"| {policy} | {iou_a.mean():.3f} / {iou_b.mean():.3f} | "
-        f"{(iou_a - iou_b).mean():+.3f} ± {_stderr(iou_a - iou_b):.3f} | "
-        f"{np.nanmean(ang_a):.1f} / {np.nanmean(ang_b):.1f} | "
-        f"{(ang_a - ang_b)[both].mean():+.1f} ± {_stderr((ang_a - ang_b)[both]):.1f} | "
-        f"{bias_a.mean():+.3f} ± {_stderr(bias_a):.3f} | {bias_b.mean():+.3f} ± {_stderr(bias_b):.3f} |")
+        f"| {policy} | {iou_a.mean():.3f} / {iou_b.mean():.3f} | {_cell(iou_a - iou_b, 3)} | "
+        f"{np.nanmean(ang_a):.1f} / {np.nanmean(ang_b):.1f} | {_cell(ang_a - ang_b, 1)} | "
+        f"{_cell(_bias(a, policy), 3)} | {_cell(_bias(b, policy), 3)} |")
   return "\n".join(lines)
 
 
