@@ -626,6 +626,32 @@ def test_planner_scores_tell_sampling_noise_from_model_error():
 
 
 @pytest.mark.unit
+def test_planner_scores_ensemble_corrects_only_independent_errors():
+  """``planner_scores.py --combine``: two models whose errors are independent choose better by
+  their sum than one model by two samples; two models with the same error gain nothing from it."""
+  module = pusht_experiment_script("planner_scores")
+  rng = np.random.default_rng(1)
+  decisions, k, s = 400, 10, 3
+  true = rng.normal(size=(decisions, k))
+  episodes = np.arange(decisions) // 4
+
+  def model(error):
+    return (true + error)[..., None] + 0.1 * rng.normal(size=(decisions, k, s))
+
+  independent = module.analyse_ensemble(model(rng.normal(size=true.shape)),
+                                        model(rng.normal(size=true.shape)), true, episodes)
+  assert abs(independent["error_correlation"]) < 0.15
+  assert independent["validity"]["ensemble"] > independent["validity"]["two_samples_one_model"] + 0.1
+  assert independent["ensemble_minus_two_samples_one_model"]["mean"] > 0.1
+  shared = rng.normal(size=true.shape)
+  same = module.analyse_ensemble(model(shared), model(shared), true, episodes)
+  assert same["error_correlation"] > 0.95
+  assert abs(same["ensemble_minus_two_samples_one_model"]["mean"]) < 0.05
+  with pytest.raises(ValueError, match="share one shape"):
+    module.analyse_ensemble(model(shared), model(shared)[:, :5], true, episodes)
+
+
+@pytest.mark.unit
 def test_probe_split_by_motion_measures_the_t_move_into_the_first_generated_frame():
   """``experiments/pusht/probe.py --split_by_motion``: the T's move and turn from the last context frame into
   the first generated one, and copying the last context frame's T IoU there (1 for a still T,

@@ -24,6 +24,15 @@ the two the model's errors are in.
 Standard errors are over episodes (each episode's decisions averaged first).
 
     python experiments/pusht/planner_scores.py --workdir W/model --step 1500 --out P.json
+
+With ``--combine A.json B.json`` it measures nothing and asks of two such files, from two models
+scored on the same candidates (the same ``--seed``, ``--episodes`` and ``--candidates``), whether
+the two models' errors are independent enough for an ensemble to choose better
+(``analyse_ensemble``): the correlation of the two models' errors over candidates, and the gain of
+the sum of one sample of each against the mean of two samples of one model (the same number of
+imagined rollouts).
+
+    python experiments/pusht/planner_scores.py --combine A.json B.json --out E.json
 """
 
 from __future__ import annotations
@@ -82,6 +91,67 @@ def analyse(imagined: np.ndarray, true: np.ndarray, episodes: np.ndarray) -> dic
           "chosen_sample": _mean_se(imagined[rows, chosen, 0] - true[rows, chosen], episodes),
           "fresh_sample": _mean_se(imagined[rows, chosen, 1:].mean(-1) - true[rows, chosen],
                                    episodes)}}
+
+
+def analyse_ensemble(first: np.ndarray, second: np.ndarray, true: np.ndarray,
+                     episodes: np.ndarray) -> dict:
+  """Two models' ``imagined [D, K, S]`` scores of the same candidates, ``true [D, K]`` and
+  ``episodes [D]`` -> their errors' correlation and what choosing by their sum gains.
+
+  ``error_correlation``: over candidates (each decision's mean removed), between the two models'
+  errors (the mean of their samples less the true value); near 1 when both models get the same
+  candidates wrong, so that an ensemble of them cannot correct its members. Gains as in
+  ``analyse``, averaged over every pairing of the samples: ``one_sample`` (either model),
+  ``two_samples_one_model`` (the mean of two samples of one model), ``ensemble`` (one sample of
+  each, summed), ``ensemble_min`` (their minimum, a pessimistic ensemble), and ``ensemble`` paired
+  against ``two_samples_one_model``.
+  """
+  if first.shape != second.shape or first.shape[:2] != true.shape:
+    raise ValueError(f"two models' scores must share one shape [D, K, S] with true [D, K]; got "
+                     f"{first.shape}, {second.shape} and {true.shape}")
+  s = first.shape[-1]
+  rows = np.arange(len(true))
+
+  def gain(score):
+    return true[rows, score.argmax(1)] - true.mean(1)
+
+  def pairs_of(model):
+    return [model[..., [i, j]].mean(-1) for i in range(s) for j in range(i + 1, s)]
+
+  one = np.mean([gain(m[..., i]) for m in (first, second) for i in range(s)], 0)
+  two = np.mean([gain(p) for m in (first, second) for p in pairs_of(m)], 0)
+  both = [(first[..., i], second[..., j]) for i in range(s) for j in range(s)]
+  ensemble = np.mean([gain(a + b) for a, b in both], 0)
+  errors = [_centered(m.mean(-1) - true).ravel() for m in (first, second)]
+  return {
+      "error_correlation": float(np.corrcoef(*errors)[0, 1]),
+      "validity": {"one_sample": float(np.mean([_correlation(m[..., i], true)
+                                                for m in (first, second) for i in range(s)])),
+                   "two_samples_one_model": float(np.mean([_correlation(p, true)
+                                                           for m in (first, second)
+                                                           for p in pairs_of(m)])),
+                   "ensemble": float(np.mean([_correlation(a + b, true) for a, b in both]))},
+      "gain": {"oracle": _mean_se(gain(true), episodes), "one_sample": _mean_se(one, episodes),
+               "two_samples_one_model": _mean_se(two, episodes),
+               "ensemble": _mean_se(ensemble, episodes),
+               "ensemble_min": _mean_se(np.mean([gain(np.minimum(a, b)) for a, b in both], 0),
+                                        episodes)},
+      "ensemble_minus_two_samples_one_model": _mean_se(ensemble - two, episodes)}
+
+
+def combine(first: dict, second: dict) -> dict:
+  """Two ``measure`` results of the same candidates -> ``analyse_ensemble`` for each score."""
+  if first["true"] != second["true"] or first["episode"] != second["episode"]:
+    raise ValueError("the two files score different candidates (their true values or episodes "
+                     "differ): measure both with the same --seed, --episodes and --candidates")
+  return {"workdirs": [first["workdir"], second["workdir"]],
+          "steps": [first["step"], second["step"]], "seed": first["seed"],
+          "held_out": bool(first["held_out"] and second["held_out"]),
+          "analysis": {name: analyse_ensemble(np.asarray(first["imagined"])[i],
+                                              np.asarray(second["imagined"])[i],
+                                              np.asarray(first["true"])[i],
+                                              np.asarray(first["episode"]))
+                       for i, name in enumerate(("value", "block"))}}
 
 
 def measure(workdir: str, step: int | None, episodes: int, candidates: int, samples: int,
@@ -148,7 +218,10 @@ def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                    formatter_class=argparse.RawDescriptionHelpFormatter,
                                    epilog="\n".join(__doc__.splitlines()[1:]))
-  parser.add_argument("--workdir", required=True, help="the model's workdir (checkpoints/)")
+  parser.add_argument("--workdir", help="the model's workdir (checkpoints/)")
+  parser.add_argument("--combine", nargs=2, metavar="JSON",
+                      help="two files this script wrote, of two models on the same candidates: "
+                           "analyse them as an ensemble instead of measuring")
   parser.add_argument("--step", type=int, default=None, help="checkpoint step (default: last)")
   parser.add_argument("--episodes", type=int, default=20)
   parser.add_argument("--candidates", type=int, default=10)
@@ -157,6 +230,18 @@ def main(argv=None) -> int:
   parser.add_argument("--seed", type=int, default=0, help="the plan stream's draw and the keys")
   parser.add_argument("--out", required=True, help="JSON file for every number")
   args = parser.parse_args(argv)
+  if (args.workdir is None) == (args.combine is None):
+    parser.error("give either --workdir (measure) or --combine A.json B.json (analyse)")
+  if args.combine:
+    runs = []
+    for path in args.combine:
+      with open(path) as f:
+        runs.append(json.load(f))
+    result = combine(*runs)
+    with open(args.out, "w") as f:
+      json.dump(result, f, indent=1)
+    print(json.dumps(result["analysis"], indent=1))
+    return 0
   if args.samples < 2 or args.candidates < 2:
     parser.error("need --samples >= 2 and --candidates >= 2")
   result = measure(args.workdir, args.step, args.episodes, args.candidates, args.samples,
