@@ -641,6 +641,7 @@ def test_planner_scores_ensemble_corrects_only_independent_errors():
   independent = module.analyse_ensemble(model(rng.normal(size=true.shape)),
                                         model(rng.normal(size=true.shape)), true, episodes)
   assert abs(independent["error_correlation"]) < 0.15
+  assert independent["slope"] == pytest.approx([1.0, 1.0], abs=0.1)
   assert independent["validity"]["ensemble"] > independent["validity"]["two_samples_one_model"] + 0.1
   assert independent["ensemble_minus_two_samples_one_model"]["mean"] > 0.1
   shared = rng.normal(size=true.shape)

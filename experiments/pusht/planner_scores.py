@@ -98,6 +98,11 @@ def analyse_ensemble(first: np.ndarray, second: np.ndarray, true: np.ndarray,
   """Two models' ``imagined [D, K, S]`` scores of the same candidates, ``true [D, K]`` and
   ``episodes [D]`` -> their errors' correlation and what choosing by their sum gains.
 
+  ``slope``: for each model, the least-squares slope of its imagined score (the mean of its
+  samples) on the true value over candidates, each decision's mean removed: 1 when the model's
+  scores follow the true values, lower where its errors point away from them (with
+  ``spread_over_candidates`` telling an error of direction from a model that moves too little).
+
   ``error_correlation``: over candidates (each decision's mean removed), between the two models'
   errors (the mean of their samples less the true value); near 1 when both models get the same
   candidates wrong, so that an ensemble of them cannot correct its members. Gains as in
@@ -123,8 +128,13 @@ def analyse_ensemble(first: np.ndarray, second: np.ndarray, true: np.ndarray,
   both = [(first[..., i], second[..., j]) for i in range(s) for j in range(s)]
   ensemble = np.mean([gain(a + b) for a, b in both], 0)
   errors = [_centered(m.mean(-1) - true).ravel() for m in (first, second)]
+  truth = _centered(true).ravel()
+  imagined = [_centered(m.mean(-1)).ravel() for m in (first, second)]
   return {
       "error_correlation": float(np.corrcoef(*errors)[0, 1]),
+      "spread_over_candidates": {"true": float(truth.std()),
+                                 "imagined": [float(m.std()) for m in imagined]},
+      "slope": [float(m @ truth / (truth @ truth)) for m in imagined],
       "validity": {"one_sample": float(np.mean([_correlation(m[..., i], true)
                                                 for m in (first, second) for i in range(s)])),
                    "two_samples_one_model": float(np.mean([_correlation(p, true)
