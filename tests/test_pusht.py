@@ -653,6 +653,47 @@ def test_planner_scores_ensemble_corrects_only_independent_errors():
 
 
 @pytest.mark.unit
+def test_contact_from_state_frames_each_transition_in_the_t_frame_and_scores_by_motion():
+  """``experiments/pusht/contact_from_state.py``: a transition's targets, drawn in the T's frame
+  at ``t``, give back the true next pose; inputs do not change when the whole scene turns and
+  moves; copying scores IoU 1 on a still T and below on a pushed one; the MLP fits a rule."""
+  module = pusht_experiment_script("contact_from_state")
+  rng = np.random.default_rng(0)
+  states = rng.uniform(100, 400, size=(6, 5, 5))
+  states[..., 4] = rng.uniform(-np.pi, np.pi, size=(6, 5))
+  states[:3, :, 2:] = states[:3, :1, 2:]  # episodes 0-2: a T that never moves
+  actions = rng.uniform(100, 400, size=(6, 5, 2))
+  data = module.transitions(states, actions)
+  assert data["inputs"].shape == (18, 12) and data["targets"].shape == (18, 3)
+  back = module.poses_from(data["targets"], data["now"])
+  np.testing.assert_allclose(back[:, :2], data["next"][:, :2], atol=1e-3)
+  np.testing.assert_allclose(np.exp(1j * back[:, 2]), np.exp(1j * data["next"][:, 2]), atol=1e-5)
+  turn, shift = 0.7, np.array([13.0, -21.0])
+
+  def moved(xy):  # the whole scene turned by ``turn`` about the origin and shifted
+    return np.stack([np.cos(turn) * xy[..., 0] - np.sin(turn) * xy[..., 1],
+                     np.sin(turn) * xy[..., 0] + np.cos(turn) * xy[..., 1]], -1) + shift
+
+  scene = np.concatenate([moved(states[..., :2]), moved(states[..., 2:4]),
+                          states[..., 4:] + turn], -1)
+  np.testing.assert_allclose(module.transitions(scene, moved(actions))["inputs"], data["inputs"],
+                             atol=1e-4)
+  copy = module.score(data["now"], data, 48)
+  assert copy["still"]["block_iou"]["mean"] == 1.0
+  assert copy["pushed"]["block_iou"]["mean"] < 0.5
+  predict = module.fit(data["inputs"], data["targets"], steps=300, batch=18, seed=0)
+  fitted = module.score(module.poses_from(predict(data["inputs"]), data["now"]), data, 48)
+  assert fitted["pushed"]["block_iou"]["mean"] > copy["pushed"]["block_iou"]["mean"]
+  steps = iter(range(3))  # a predictor that knows each step's true move rolls out the truth
+  exact = module.roll_out(lambda _: data["targets"].reshape(6, 3, 3)[:, next(steps)], states,
+                          actions)
+  np.testing.assert_allclose(exact[..., :2], states[:, 2:, 2:4], atol=1e-3)
+  np.testing.assert_allclose(np.exp(1j * exact[..., 2]), np.exp(1j * states[:, 2:, 4]), atol=1e-5)
+  end = module.rollout_end(exact[:, -1], states, 48)
+  assert end["all"]["mean"] == pytest.approx(1.0) and end["moved"]["episodes"] == 3
+
+
+@pytest.mark.unit
 def test_probe_split_by_motion_measures_the_t_move_into_the_first_generated_frame():
   """``experiments/pusht/probe.py --split_by_motion``: the T's move and turn from the last context frame into
   the first generated one, and copying the last context frame's T IoU there (1 for a still T,

@@ -1,0 +1,256 @@
+"""Push-T: can the T's next pose be learnt from what two frames show, with the data a world model has?
+
+A world model of the ``latent`` profile draws the pushed T no better than copying the last frame
+(``probe.py --split_by_motion``). This asks whether that is the data's limit or the model's. A
+small MLP is given the simulator's exact state at the two context steps (the agent's and the T's
+poses at ``t - 1`` and ``t``) and the two actions (targets) that a world model's window sees, all
+in the T's own frame at ``t``, and predicts the T's pose at ``t + 1``. It trains on the world
+model's training split and is scored on its ``test`` split (held-out episodes), by the T's IoU
+between the predicted and the true pose (both drawn with ``goal_mask`` at the frames' size),
+beside copying the pose at ``t``, split by how far the simulator's T moved (``probe.py``'s
+groups: still, nudged, pushed), and by the T's IoU at the last step of a rollout over each test
+episode in which it predicts the T from its own predictions (:func:`roll_out`; the agent and the
+actions are the simulator's), beside copying the T of the last context step.
+
+Two budgets: the world model's (``--wm_steps`` steps of ``--wm_batch``, as many transitions as its
+training draws windows) and a long one (``--steps`` of ``--batch``), each at the learning rate
+of ``--learning_rates`` with the least loss on the last tenth of the training episodes (held out
+of the fit). If the MLP predicts the
+pushed T well within the world model's budget, the data hold the contact dynamics and the world
+model does not read or draw them; if it does not even with the long budget, two frames and the
+actions do not determine where the T goes, and no world model of these inputs can draw it.
+
+    python experiments/pusht/contact_from_state.py --data W/data/pusht/NAME/1.0.0 --out C.json
+
+Means and standard errors are over test episodes (each episode's transitions averaged first).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+MOTION_GROUPS = ((0.0, 0.5, "still"), (0.5, 5.0, "nudged"), (5.0, float("inf"), "pushed"))
+POSITION_SCALE, TARGET_SCALE = 100.0, 10.0  # simulator units
+
+
+def _rotate(points: np.ndarray, angle: np.ndarray) -> np.ndarray:
+  """``points [N, ..., 2]`` rotated by ``angle [N]`` (radians)."""
+  c, s = np.cos(angle), np.sin(angle)
+  extra = (None,) * (points.ndim - 2)
+  c, s = c[(slice(None),) + extra], s[(slice(None),) + extra]
+  return np.stack([c * points[..., 0] - s * points[..., 1],
+                   s * points[..., 0] + c * points[..., 1]], -1)
+
+
+def features(agent_prev, agent_now, action_prev, action_now, block_prev, block_now) -> np.ndarray:
+  """What a world model's window shows, in the T's frame at ``t``: the agent's positions at
+  ``t - 1`` and ``t`` and the two actions ``[N, 2]`` each, and the T's poses at ``t - 1`` and ``t``
+  ``[N, 3]`` -> ``inputs [N, 12]`` (those points less the T's position at ``t``, turned by minus
+  its angle, in units of ``POSITION_SCALE``, and the sine and cosine of the T's turn)."""
+  origin, angle = block_now[:, :2], block_now[:, 2]
+  points = np.stack([agent_prev, agent_now, action_prev, action_now, block_prev[:, :2]], 1)
+  local = _rotate(points - origin[:, None], -angle) / POSITION_SCALE
+  turn = block_prev[:, 2] - angle
+  return np.concatenate([local.reshape(len(points), -1),
+                         np.stack([np.sin(turn), np.cos(turn)], 1)], 1).astype(np.float32)
+
+
+def transitions(states: np.ndarray, actions: np.ndarray) -> dict:
+  """Every ``(t - 1, t) -> t + 1`` transition of episodes ``states [E, T, 5]`` (agent x, y; T x,
+  y, angle) and ``actions [E, T, 2]`` (``actions[t]`` leads from step ``t`` to ``t + 1``) ->
+  ``inputs [N, 12]`` (:func:`features`) and ``targets [N, 3]`` (the T's pose at ``t + 1`` in its
+  frame at ``t``), and for scoring the poses ``now [N, 3]`` and ``next [N, 3]`` and ``episode
+  [N]``."""
+  e, t = states.shape[:2]
+  rows = [(i, j) for i in range(e) for j in range(1, t - 1)]
+  ep, step = (np.asarray(v) for v in zip(*rows))
+  s_prev, s_now, s_next = states[ep, step - 1], states[ep, step], states[ep, step + 1]
+  inputs = features(s_prev[:, :2], s_now[:, :2], actions[ep, step - 1], actions[ep, step],
+                    s_prev[:, 2:], s_now[:, 2:])
+  origin, angle = s_now[:, 2:4], s_now[:, 4]
+  move = _rotate((s_next[:, 2:4] - origin)[:, None], -angle)[:, 0] / TARGET_SCALE
+  turn_next = np.angle(np.exp(1j * (s_next[:, 4] - angle)))
+  targets = np.concatenate([move, 10.0 * turn_next[:, None]], 1)
+  return {"inputs": inputs, "targets": targets.astype(np.float32),
+          "now": s_now[:, 2:5].astype(np.float64), "next": s_next[:, 2:5].astype(np.float64),
+          "episode": ep}
+
+
+def roll_out(predict, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
+  """The T's poses ``[E, T - 2, 3]`` at steps ``2 .. T - 1`` of episodes ``states [E, T, 5]``,
+  each predicted from the predictions before it (the T at steps 0 and 1 and the agent and the
+  actions at every step are the simulator's): how far one-step errors carry over a rollout."""
+  blocks = [states[:, 0, 2:], states[:, 1, 2:]]
+  for t in range(1, states.shape[1] - 1):
+    inputs = features(states[:, t - 1, :2], states[:, t, :2], actions[:, t - 1], actions[:, t],
+                      blocks[-2], blocks[-1])
+    blocks.append(poses_from(predict(inputs), blocks[-1]))
+  return np.stack(blocks[2:], 1)
+
+
+def poses_from(targets: np.ndarray, now: np.ndarray) -> np.ndarray:
+  """``targets [N, 3]`` (as :func:`transitions` writes them) and the poses at ``t`` -> the world
+  poses ``[N, 3]`` they stand for."""
+  move = _rotate(targets[:, None, :2] * TARGET_SCALE, now[:, 2])[:, 0]
+  return np.concatenate([now[:, :2] + move, (now[:, 2] + targets[:, 2] / 10.0)[:, None]], 1)
+
+
+def block_iou(first: np.ndarray, second: np.ndarray, size: int) -> np.ndarray:
+  """The T's IoU between poses ``first [N, 3]`` and ``second [N, 3]`` drawn at ``size``."""
+  from wmjax.tasks.pusht.simulator import goal_mask
+  out = np.empty(len(first))
+  for i, (a, b) in enumerate(zip(first, second)):
+    ma, mb = goal_mask(size, a), goal_mask(size, b)
+    out[i] = (ma & mb).sum() / max((ma | mb).sum(), 1)
+  return out
+
+
+def fit(inputs: np.ndarray, targets: np.ndarray, steps: int, batch: int, seed: int,
+        width: int = 256, depth: int = 3, learning_rate: float = 1e-3):
+  """An MLP ``inputs [N, 12] -> targets [N, 3]`` fitted by Adam on the MSE of standardised
+  targets -> a function ``inputs -> targets``."""
+  import flax.linen as nn
+  import jax
+  import jax.numpy as jnp
+  import optax
+
+  mean, std = targets.mean(0), targets.std(0) + 1e-6
+
+  class MLP(nn.Module):
+    @nn.compact
+    def __call__(self, x):
+      for _ in range(depth):
+        x = nn.gelu(nn.Dense(width)(x))
+      return nn.Dense(targets.shape[1])(x)
+
+  net = MLP()
+  params = net.init(jax.random.key(seed), inputs[:1])
+  optimizer = optax.adamw(optax.cosine_decay_schedule(learning_rate, steps), weight_decay=1e-4)
+  state = optimizer.init(params)
+  x_all, y_all = jnp.asarray(inputs), jnp.asarray((targets - mean) / std)
+
+  @jax.jit
+  def step(params, state, key):
+    index = jax.random.randint(key, (batch,), 0, len(x_all))
+
+    def loss(p):
+      return jnp.mean((net.apply(p, x_all[index]) - y_all[index]) ** 2)
+
+    value, grads = jax.value_and_grad(loss)(params)
+    updates, state = optimizer.update(grads, state, params)
+    return optax.apply_updates(params, updates), state, value
+
+  key = jax.random.key(seed + 1)
+  for i in range(steps):
+    params, state, _ = step(params, state, jax.random.fold_in(key, i))
+  apply = jax.jit(net.apply)
+  return lambda x: np.asarray(apply(params, jnp.asarray(x))) * std + mean
+
+
+def _mean_se(values: np.ndarray, episodes: np.ndarray) -> dict:
+  groups = np.asarray([values[episodes == e].mean() for e in np.unique(episodes)])
+  se = float(groups.std(ddof=1) / np.sqrt(len(groups))) if len(groups) > 1 else float("nan")
+  return {"mean": float(groups.mean()), "stderr": se, "episodes": int(len(groups)),
+          "transitions": int(len(values))}
+
+
+def score(predicted: np.ndarray, data: dict, size: int) -> dict:
+  """T IoU, centre error (simulator units) and angle error (degrees) of ``predicted [N, 3]``
+  poses against the true next poses, per motion group."""
+  moved = np.linalg.norm(data["next"][:, :2] - data["now"][:, :2], axis=1)
+  iou = block_iou(predicted, data["next"], size)
+  centre = np.linalg.norm(predicted[:, :2] - data["next"][:, :2], axis=1)
+  angle = np.abs(np.degrees(np.angle(np.exp(1j * (predicted[:, 2] - data["next"][:, 2])))))
+  out = {}
+  for lo, hi, name in MOTION_GROUPS:
+    keep = (moved >= lo) & (moved < hi)
+    if keep.any():
+      out[name] = {key: _mean_se(v[keep], data["episode"][keep])
+                   for key, v in (("block_iou", iou), ("centre_error", centre),
+                                  ("angle_error_deg", angle))}
+  return out
+
+
+def rollout_end(predicted: np.ndarray, states: np.ndarray, size: int) -> dict:
+  """T IoU of the last step's ``predicted [E, 3]`` poses against ``states [E, T, 5]``'s, over all
+  episodes and over those whose T moved 5 units or more between step 1 and the last."""
+  iou = block_iou(predicted, states[:, -1, 2:], size)
+  moved = np.linalg.norm(states[:, -1, 2:4] - states[:, 1, 2:4], axis=1) >= 5.0
+  episodes = np.arange(len(states))
+  return {"all": _mean_se(iou, episodes), "moved": _mean_se(iou[moved], episodes[moved])}
+
+
+def read_split(data_dir: str, split: str) -> tuple[np.ndarray, np.ndarray]:
+  """``states [E, T, 5]`` and ``actions [E, T, 2]`` of a Push-T dataset's split."""
+  import wmjax.tasks.pusht  # noqa: F401  (registers the Push-T spec)
+  from wmjax.data.sources import ArrayRecordEpisodes
+
+  source = ArrayRecordEpisodes(data_dir, split, "pusht")
+  episodes = [source.episode(i) for i in range(len(source))]
+  return (np.stack([e.extras["state"] for e in episodes]).astype(np.float64),
+          np.stack([e.actions for e in episodes]).astype(np.float64))
+
+
+def main(argv=None) -> int:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                   formatter_class=argparse.RawDescriptionHelpFormatter,
+                                   epilog="\n".join(__doc__.splitlines()[1:]))
+  parser.add_argument("--data", required=True, help="the Push-T builder directory (…/1.0.0)")
+  parser.add_argument("--reference", help="another Push-T builder directory whose test episodes "
+                      "are rolled out too (e.g. probe.py's all-scripted reference data)")
+  parser.add_argument("--size", type=int, default=48, help="frame size the T is drawn at")
+  parser.add_argument("--wm_steps", type=int, default=3000)
+  parser.add_argument("--wm_batch", type=int, default=16)
+  parser.add_argument("--steps", type=int, default=10000)
+  parser.add_argument("--batch", type=int, default=256)
+  parser.add_argument("--learning_rates", default="1e-3,3e-3,1e-2",
+                      help="tried at each budget; the one with the least validation loss (the "
+                           "last tenth of the training episodes, not trained on) is scored")
+  parser.add_argument("--seed", type=int, default=0)
+  parser.add_argument("--out", required=True, help="JSON file for every number")
+  args = parser.parse_args(argv)
+  states, actions = read_split(args.data, "train")
+  keep = len(states) - len(states) // 10
+  train, validation = transitions(states[:keep], actions[:keep]), transitions(states[keep:],
+                                                                              actions[keep:])
+  splits = {"test": read_split(args.data, "test")}
+  if args.reference:
+    splits["reference"] = read_split(args.reference, "test")
+  test = transitions(*splits["test"])
+  result = {"data": args.data, "reference": args.reference, "seed": args.seed,
+            "train_transitions": len(train["inputs"]),
+            "validation_transitions": len(validation["inputs"]),
+            "test_transitions": len(test["inputs"]),
+            "copy": {"test": score(test["now"], test, args.size),
+                     **{f"{split}_rollout_end": rollout_end(s[:, 1, 2:], s, args.size)
+                        for split, (s, _) in splits.items()}}}
+  for name, steps, batch in (("world_model_budget", args.wm_steps, args.wm_batch),
+                             ("long", args.steps, args.batch)):
+    losses, fitted = {}, {}
+    for rate in (float(r) for r in args.learning_rates.split(",")):
+      fitted[rate] = fit(train["inputs"], train["targets"], steps, batch, args.seed,
+                         learning_rate=rate)
+      losses[rate] = float(np.mean((fitted[rate](validation["inputs"])
+                                    - validation["targets"]) ** 2))
+    rate = min(losses, key=losses.get)
+    predict = fitted[rate]
+    result[name] = {"steps": steps, "batch": batch, "learning_rate": rate,
+                    "validation_mse": {f"{r:g}": v for r, v in losses.items()},
+                    "test": score(poses_from(predict(test["inputs"]), test["now"]), test, args.size),
+                    **{f"{split}_rollout_end": rollout_end(roll_out(predict, s, a)[:, -1], s,
+                                                           args.size)
+                       for split, (s, a) in splits.items()}}
+  for name in ("copy", "world_model_budget", "long"):
+    print(name, "one step", json.dumps({g: v["block_iou"] for g, v in result[name]["test"].items()}))
+    for key in (k for k in result[name] if k.endswith("rollout_end")):
+      print(name, key, json.dumps(result[name][key]))
+  with open(args.out, "w") as f:
+    json.dump(result, f, indent=1)
+  return 0
+
+
+if __name__ == "__main__":
+  raise SystemExit(main())
