@@ -694,6 +694,28 @@ def test_contact_from_state_frames_each_transition_in_the_t_frame_and_scores_by_
 
 
 @pytest.mark.unit
+def test_contact_from_state_reads_the_state_back_from_frames():
+  """``contact_from_state.seen_states``: the agent's and the T's poses read from 96-pixel frames
+  drawn from known states come back within a few simulator units and degrees."""
+  from wmjax.tasks.pusht.simulator import PALETTE, goal_mask
+  module = pusht_experiment_script("contact_from_state")
+  states = np.array([[[120.0, 380.0, 250.0, 240.0, 0.3], [400.0, 100.0, 230.0, 280.0, -1.2]]])
+  size = 96
+  frames = np.full((1, 2, size, size, 3), 255, np.uint8)
+  centres = (np.arange(size) + 0.5) * 512.0 / size
+  for t, state in enumerate(states[0]):
+    frames[0, t][goal_mask(size, state[2:])] = PALETTE[2]
+    disc = np.hypot(centres[None, :] - state[0], centres[:, None] - state[1]) <= 15.0
+    frames[0, t][disc] = PALETTE[3]
+  seen = module.seen_states(frames)
+  np.testing.assert_allclose(seen[..., :4], states[..., :4], atol=4.0)
+  np.testing.assert_allclose(np.degrees(np.angle(np.exp(1j * (seen[..., 4] - states[..., 4])))), 0,
+                             atol=3.0)
+  data = module.transitions(np.repeat(states, 3, 1), np.zeros((1, 6, 2)), np.repeat(seen, 3, 1))
+  np.testing.assert_allclose(data["now"], np.repeat(seen, 3, 1)[0, 1:5, 2:])
+
+
+@pytest.mark.unit
 def test_probe_split_by_motion_measures_the_t_move_into_the_first_generated_frame():
   """``experiments/pusht/probe.py --split_by_motion``: the T's move and turn from the last context frame into
   the first generated one, and copying the last context frame's T IoU there (1 for a still T,

@@ -12,15 +12,20 @@ groups: still, nudged, pushed), and by the T's IoU at the last step of a rollout
 episode in which it predicts the T from its own predictions (:func:`roll_out`; the agent and the
 actions are the simulator's), beside copying the T of the last context step.
 
+With ``--perceived`` the inputs are read from the dataset's 48-pixel frames instead
+(:func:`seen_states`: the agent's and the T's pixels, as ``wmjax.tasks.pusht.metrics`` reads
+them): whether the frames a world model sees still hold what the state holds.
+
 Two budgets: the world model's (``--wm_steps`` steps of ``--wm_batch``, as many transitions as its
 training draws windows) and a long one (``--steps`` of ``--batch``), each at the learning rate
 of ``--learning_rates`` with the least loss on the last tenth of the training episodes (held out
-of the fit). If the MLP predicts the
-pushed T well within the world model's budget, the data hold the contact dynamics and the world
-model does not read or draw them; if it does not even with the long budget, two frames and the
-actions do not determine where the T goes, and no world model of these inputs can draw it.
+of the fit). If the MLP predicts the pushed T well within the world model's budget, the data
+hold the contact dynamics and the world model does not read or draw them; if it does not even
+with the long budget, two frames and the actions do not determine where the T goes, and no world
+model of these inputs can draw it.
 
-    python experiments/pusht/contact_from_state.py --data W/data/pusht/NAME/1.0.0 --out C.json
+    python experiments/pusht/contact_from_state.py --data W/data/pusht/NAME/1.0.0 \\
+        [--reference REF/pusht/NAME/1.0.0] [--perceived] --out C.json
 
 Means and standard errors are over test episodes (each episode's transitions averaged first).
 """
@@ -58,16 +63,17 @@ def features(agent_prev, agent_now, action_prev, action_now, block_prev, block_n
                          np.stack([np.sin(turn), np.cos(turn)], 1)], 1).astype(np.float32)
 
 
-def transitions(states: np.ndarray, actions: np.ndarray) -> dict:
+def transitions(states: np.ndarray, actions: np.ndarray, seen: np.ndarray | None = None) -> dict:
   """Every ``(t - 1, t) -> t + 1`` transition of episodes ``states [E, T, 5]`` (agent x, y; T x,
   y, angle) and ``actions [E, T, 2]`` (``actions[t]`` leads from step ``t`` to ``t + 1``) ->
-  ``inputs [N, 12]`` (:func:`features`) and ``targets [N, 3]`` (the T's pose at ``t + 1`` in its
-  frame at ``t``), and for scoring the poses ``now [N, 3]`` and ``next [N, 3]`` and ``episode
-  [N]``."""
+  ``inputs [N, 12]`` (:func:`features`, of the states ``seen``: by default the true ones) and
+  ``targets [N, 3]`` (the true T's pose at ``t + 1`` in the seen T's frame at ``t``), and for
+  scoring the seen poses ``now [N, 3]``, the true ``next [N, 3]`` and ``episode [N]``."""
+  seen = states if seen is None else seen
   e, t = states.shape[:2]
   rows = [(i, j) for i in range(e) for j in range(1, t - 1)]
   ep, step = (np.asarray(v) for v in zip(*rows))
-  s_prev, s_now, s_next = states[ep, step - 1], states[ep, step], states[ep, step + 1]
+  s_prev, s_now, s_next = seen[ep, step - 1], seen[ep, step], states[ep, step + 1]
   inputs = features(s_prev[:, :2], s_now[:, :2], actions[ep, step - 1], actions[ep, step],
                     s_prev[:, 2:], s_now[:, 2:])
   origin, angle = s_now[:, 2:4], s_now[:, 4]
@@ -80,9 +86,10 @@ def transitions(states: np.ndarray, actions: np.ndarray) -> dict:
 
 
 def roll_out(predict, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
-  """The T's poses ``[E, T - 2, 3]`` at steps ``2 .. T - 1`` of episodes ``states [E, T, 5]``,
-  each predicted from the predictions before it (the T at steps 0 and 1 and the agent and the
-  actions at every step are the simulator's): how far one-step errors carry over a rollout."""
+  """The T's poses ``[E, T - 2, 3]`` at steps ``2 .. T - 1`` of episodes ``states [E, T, 5]``
+  (true or seen), each predicted from the predictions before it (the T at steps 0 and 1 and the
+  agent and the actions at every step are the given ones): how far one-step errors carry over
+  a rollout."""
   blocks = [states[:, 0, 2:], states[:, 1, 2:]]
   for t in range(1, states.shape[1] - 1):
     inputs = features(states[:, t - 1, :2], states[:, t, :2], actions[:, t - 1], actions[:, t],
@@ -183,15 +190,37 @@ def rollout_end(predicted: np.ndarray, states: np.ndarray, size: int) -> dict:
   return {"all": _mean_se(iou, episodes), "moved": _mean_se(iou[moved], episodes[moved])}
 
 
-def read_split(data_dir: str, split: str) -> tuple[np.ndarray, np.ndarray]:
-  """``states [E, T, 5]`` and ``actions [E, T, 2]`` of a Push-T dataset's split."""
+def seen_states(frames: np.ndarray) -> np.ndarray:
+  """What the frames ``[E, T, H, W, 3]`` uint8 show of the state -> ``[E, T, 5]``: the agent's
+  and the T's centroids of their pixels (world units) and the T's angle from its pixels
+  (:func:`wmjax.tasks.pusht.metrics.block_pose`), the T's position moved from its centre of
+  area to its body origin as the simulator keeps it."""
+  from wmjax.frames import to_model
+  from wmjax.tasks.pusht.metrics import block_pose
+  from wmjax.tasks.pusht.simulator import T_CENTROID, centroids, object_masks
+
+  flat = to_model(frames.reshape((-1,) + frames.shape[2:]))
+  block_xy, agent_xy, _ = (np.asarray(v, np.float64) for v in centroids(flat))
+  _, angle, _ = block_pose(np.asarray(object_masks(flat)[0]))
+  origin = block_xy - _rotate(np.asarray(T_CENTROID)[None, None], angle)[:, 0]
+  return np.concatenate([agent_xy, origin, angle[:, None]], 1).reshape(frames.shape[:2] + (5,))
+
+
+def read_split(data_dir: str, split: str, frames: bool = False) -> tuple[np.ndarray, ...]:
+  """``states [E, T, 5]`` and ``actions [E, T, 2]`` of a Push-T dataset's split, and with
+  ``frames`` the states its frames show (:func:`seen_states`)."""
   import wmjax.tasks.pusht  # noqa: F401  (registers the Push-T spec)
+  from wmjax.data.rlds import decode_image
   from wmjax.data.sources import ArrayRecordEpisodes
 
   source = ArrayRecordEpisodes(data_dir, split, "pusht")
   episodes = [source.episode(i) for i in range(len(source))]
-  return (np.stack([e.extras["state"] for e in episodes]).astype(np.float64),
-          np.stack([e.actions for e in episodes]).astype(np.float64))
+  out = (np.stack([e.extras["state"] for e in episodes]).astype(np.float64),
+         np.stack([e.actions for e in episodes]).astype(np.float64))
+  if not frames:
+    return out
+  images = np.stack([[decode_image(image, None) for image in e.images] for e in episodes])
+  return out + (seen_states(images),)
 
 
 def main(argv=None) -> int:
@@ -209,24 +238,33 @@ def main(argv=None) -> int:
   parser.add_argument("--learning_rates", default="1e-3,3e-3,1e-2",
                       help="tried at each budget; the one with the least validation loss (the "
                            "last tenth of the training episodes, not trained on) is scored")
+  parser.add_argument("--perceived", action="store_true",
+                      help="the MLP's inputs read from the dataset's frames (seen_states) instead "
+                           "of the simulator's state; the targets stay the true poses")
   parser.add_argument("--seed", type=int, default=0)
   parser.add_argument("--out", required=True, help="JSON file for every number")
   args = parser.parse_args(argv)
-  states, actions = read_split(args.data, "train")
-  keep = len(states) - len(states) // 10
-  train, validation = transitions(states[:keep], actions[:keep]), transitions(states[keep:],
-                                                                              actions[keep:])
-  splits = {"test": read_split(args.data, "test")}
+
+  def episodes(data_dir, split):  # (true states, actions, the states the inputs are read from)
+    read = read_split(data_dir, split, frames=args.perceived)
+    return read if args.perceived else read + (read[0],)
+
+  train_split = episodes(args.data, "train")
+  keep = len(train_split[0]) - len(train_split[0]) // 10
+  train = transitions(*(v[:keep] for v in train_split))
+  validation = transitions(*(v[keep:] for v in train_split))
+  splits = {"test": episodes(args.data, "test")}
   if args.reference:
-    splits["reference"] = read_split(args.reference, "test")
-  test = transitions(*splits["test"])
+    splits["reference"] = episodes(args.reference, "test")
+  test, truth = transitions(*splits["test"]), transitions(*splits["test"][:2])
   result = {"data": args.data, "reference": args.reference, "seed": args.seed,
+            "inputs": "read from the frames" if args.perceived else "the simulator's state",
             "train_transitions": len(train["inputs"]),
             "validation_transitions": len(validation["inputs"]),
             "test_transitions": len(test["inputs"]),
-            "copy": {"test": score(test["now"], test, args.size),
+            "copy": {"test": score(truth["now"], truth, args.size),
                      **{f"{split}_rollout_end": rollout_end(s[:, 1, 2:], s, args.size)
-                        for split, (s, _) in splits.items()}}}
+                        for split, (s, _, _) in splits.items()}}}
   for name, steps, batch in (("world_model_budget", args.wm_steps, args.wm_batch),
                              ("long", args.steps, args.batch)):
     losses, fitted = {}, {}
@@ -240,9 +278,9 @@ def main(argv=None) -> int:
     result[name] = {"steps": steps, "batch": batch, "learning_rate": rate,
                     "validation_mse": {f"{r:g}": v for r, v in losses.items()},
                     "test": score(poses_from(predict(test["inputs"]), test["now"]), test, args.size),
-                    **{f"{split}_rollout_end": rollout_end(roll_out(predict, s, a)[:, -1], s,
-                                                           args.size)
-                       for split, (s, a) in splits.items()}}
+                    **{f"{split}_rollout_end": rollout_end(roll_out(predict, seen, a)[:, -1],
+                                                           s, args.size)
+                       for split, (s, a, seen) in splits.items()}}
   for name in ("copy", "world_model_budget", "long"):
     print(name, "one step", json.dumps({g: v["block_iou"] for g, v in result[name]["test"].items()}))
     for key in (k for k in result[name] if k.endswith("rollout_end")):
