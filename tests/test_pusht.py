@@ -713,6 +713,7 @@ def test_contact_from_state_reads_the_state_back_from_frames():
                              atol=3.0)
   data = module.transitions(np.repeat(states, 3, 1), np.zeros((1, 6, 2)), np.repeat(seen, 3, 1))
   np.testing.assert_allclose(data["now"], np.repeat(seen, 3, 1)[0, 1:5, 2:])
+  np.testing.assert_allclose(data["moved"], [0.0, np.hypot(20.0, 40.0), 0.0, 0.0], atol=1e-9)
 
 
 @pytest.mark.unit

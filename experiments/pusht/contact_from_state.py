@@ -68,7 +68,8 @@ def transitions(states: np.ndarray, actions: np.ndarray, seen: np.ndarray | None
   y, angle) and ``actions [E, T, 2]`` (``actions[t]`` leads from step ``t`` to ``t + 1``) ->
   ``inputs [N, 12]`` (:func:`features`, of the states ``seen``: by default the true ones) and
   ``targets [N, 3]`` (the true T's pose at ``t + 1`` in the seen T's frame at ``t``), and for
-  scoring the seen poses ``now [N, 3]``, the true ``next [N, 3]`` and ``episode [N]``."""
+  scoring the seen poses ``now [N, 3]``, the true ``next [N, 3]``, how far the true T moves
+  ``moved [N]`` (simulator units) and ``episode [N]``."""
   seen = states if seen is None else seen
   e, t = states.shape[:2]
   rows = [(i, j) for i in range(e) for j in range(1, t - 1)]
@@ -82,7 +83,7 @@ def transitions(states: np.ndarray, actions: np.ndarray, seen: np.ndarray | None
   targets = np.concatenate([move, 10.0 * turn_next[:, None]], 1)
   return {"inputs": inputs, "targets": targets.astype(np.float32),
           "now": s_now[:, 2:5].astype(np.float64), "next": s_next[:, 2:5].astype(np.float64),
-          "episode": ep}
+          "moved": np.linalg.norm(s_next[:, 2:4] - states[ep, step, 2:4], axis=1), "episode": ep}
 
 
 def roll_out(predict, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
@@ -166,8 +167,8 @@ def _mean_se(values: np.ndarray, episodes: np.ndarray) -> dict:
 
 def score(predicted: np.ndarray, data: dict, size: int) -> dict:
   """T IoU, centre error (simulator units) and angle error (degrees) of ``predicted [N, 3]``
-  poses against the true next poses, per motion group."""
-  moved = np.linalg.norm(data["next"][:, :2] - data["now"][:, :2], axis=1)
+  poses against the true next poses, per group of the true T's motion."""
+  moved = data["moved"]
   iou = block_iou(predicted, data["next"], size)
   centre = np.linalg.norm(predicted[:, :2] - data["next"][:, :2], axis=1)
   angle = np.abs(np.degrees(np.angle(np.exp(1j * (predicted[:, 2] - data["next"][:, 2])))))
