@@ -159,9 +159,12 @@ def fit(inputs: np.ndarray, targets: np.ndarray, steps: int, batch: int, seed: i
 
 
 def _mean_se(values: np.ndarray, episodes: np.ndarray) -> dict:
-  groups = np.asarray([values[episodes == e].mean() for e in np.unique(episodes)])
-  se = float(groups.std(ddof=1) / np.sqrt(len(groups))) if len(groups) > 1 else float("nan")
-  return {"mean": float(groups.mean()), "stderr": se, "episodes": int(len(groups)),
+  """Mean and standard error over episodes of ``values [N]``, each episode's values averaged
+  first."""
+  from wmjax.eval.metrics import mean_stderr
+
+  mean, stderr = mean_stderr([values[episodes == e].mean() for e in np.unique(episodes)])
+  return {"mean": float(mean), "stderr": float(stderr), "episodes": int(len(np.unique(episodes))),
           "transitions": int(len(values))}
 
 
