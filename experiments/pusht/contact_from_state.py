@@ -12,6 +12,11 @@ groups: still, nudged, pushed), and by the T's IoU at the last step of a rollout
 episode in which it predicts the T from its own predictions (:func:`roll_out`; the agent and the
 actions are the simulator's), beside copying the T of the last context step.
 
+With ``--policies CONFIG`` it also rolls out the closed-loop simulator episodes of ``wmjax
+eval-policy``'s default policies for that profile (:func:`policy_episodes`: its held-out start
+states, 32 control steps): the episodes whose last frame goal 4's "T at the end of ``push``" is
+measured on, beside what the world model keeps there.
+
 With ``--perceived`` the inputs are read from the dataset's 48-pixel frames instead
 (:func:`seen_states`: the agent's and the T's pixels, as ``wmjax.tasks.pusht.metrics`` reads
 them): whether the frames a world model sees still hold what the state holds.
@@ -25,7 +30,8 @@ with the long budget, two frames and the actions do not determine where the T go
 model of these inputs can draw it.
 
     python experiments/pusht/contact_from_state.py --data W/data/pusht/NAME/1.0.0 \\
-        [--reference REF/pusht/NAME/1.0.0] [--perceived] --out C.json
+        [--reference REF/pusht/NAME/1.0.0] [--policies configs/pusht.py:latent] [--perceived] \\
+        --out C.json
 
 Means and standard errors are over test episodes (each episode's transitions averaged first).
 """
@@ -210,6 +216,39 @@ def seen_states(frames: np.ndarray) -> np.ndarray:
   return np.concatenate([agent_xy, origin, angle[:, None]], 1).reshape(frames.shape[:2] + (5,))
 
 
+def policy_episodes(config_file: str, episodes: int, control_steps: int = 32,
+                    frames: bool = False) -> dict[str, tuple[np.ndarray, ...]]:
+  """Per policy of ``wmjax eval-policy``'s default set, ``states [E, T, 5]`` and ``actions [E,
+  T, 2]`` of its ``episodes`` closed-loop simulator episodes of ``control_steps`` control steps,
+  from the held-out start states and with the policy noise that ``eval-policy`` draws for the
+  profile ``config_file`` (its ``--seed 0``; :func:`wmjax.tasks.pusht.evaluate.evaluate_policies`),
+  and with ``frames`` the states its frames show: the episodes whose last frame goal 4's "T at
+  the end of ``push``" scores."""
+  import jax
+
+  from wmjax.config import load_config
+  from wmjax.tasks.pusht import evaluate
+  from wmjax.tasks.pusht.dataset import PushTConfig
+  from wmjax.tasks.pusht.simulator import simulate_policy
+
+  config = load_config(config_file)
+  params = PushTConfig.from_dict(config.data.pusht)
+  states = evaluate.initial_states(config, episodes, "evaluate")
+  if not evaluate.held_out(config, states):
+    raise ValueError(f"the evaluation start states of {config_file} meet its training split")
+  policies = evaluate.policies_from_specs(None, evaluate.policy_chunk(config))
+  out = {}
+  for index, (name, policy) in enumerate(policies.items()):
+    truth = simulate_policy(policy, states, params.actions_for(control_steps),
+                            image_size=params.image_size,
+                            key=jax.random.fold_in(jax.random.key(0), index),
+                            context=config.rollout.context, action_repeat=params.action_repeat)
+    out[name] = (truth["state"].astype(np.float64), truth["actions"].astype(np.float64))
+    if frames:
+      out[name] += (seen_states(truth["frames"]),)
+  return out
+
+
 def read_split(data_dir: str, split: str, frames: bool = False) -> tuple[np.ndarray, ...]:
   """``states [E, T, 5]`` and ``actions [E, T, 2]`` of a Push-T dataset's split, and with
   ``frames`` the states its frames show (:func:`seen_states`)."""
@@ -234,6 +273,11 @@ def main(argv=None) -> int:
   parser.add_argument("--data", required=True, help="the Push-T builder directory (…/1.0.0)")
   parser.add_argument("--reference", help="another Push-T builder directory whose test episodes "
                       "are rolled out too (e.g. probe.py's all-scripted reference data)")
+  parser.add_argument("--policies", metavar="CONFIG",
+                      help="also roll out the episodes of `wmjax eval-policy`'s default policies "
+                           "for this config (e.g. configs/pusht.py:latent, whose data --data "
+                           "is): held-out start states, 32 control steps (policy_episodes)")
+  parser.add_argument("--policy_episodes", type=int, default=48, help="episodes per policy")
   parser.add_argument("--size", type=int, default=48, help="frame size the T is drawn at")
   parser.add_argument("--wm_steps", type=int, default=3000)
   parser.add_argument("--wm_batch", type=int, default=16)
@@ -260,6 +304,10 @@ def main(argv=None) -> int:
   splits = {"test": episodes(args.data, "test")}
   if args.reference:
     splits["reference"] = episodes(args.reference, "test")
+  if args.policies:
+    for name, read in policy_episodes(args.policies, args.policy_episodes,
+                                      frames=args.perceived).items():
+      splits[f"policy_{name}"] = read if args.perceived else read + (read[0],)
   test, truth = transitions(*splits["test"]), transitions(*splits["test"][:2])
   result = {"data": args.data, "reference": args.reference, "seed": args.seed,
             "inputs": "read from the frames" if args.perceived else "the simulator's state",
