@@ -40,12 +40,13 @@ Profiles (``configs/pusht.py:PROFILE``):
   frames): screened at step 1500 in two training seeds, the untouched T's outline fades a third to
   a half slower and the T at the end of ``stay`` is 0.82 in both (0.71 and 0.77 without; at step
   3000 0.81 against 0.75); the pushed T is no better. Each self-forced step costs about a sixth
-  more. The whole experiment, before self-forcing, took 61 minutes on 2 CPU
-  cores (2026-11-28, alone, data to planning at K = 50). It ranks the five policies as the simulator does
-  but for one swap of two policies within a standard error of each other (Pearson 0.949 and
-  0.936, Spearman 0.9); its pushed T still turns into a blob at contact (IoU 0.40 and 0.34 at the
-  end of ``push``, copying the first frame 0.45), and planning in it gains at K = 5 and 10 no more
-  than about twice its noise and nothing at K = 50.
+  more. The whole experiment, before self-forcing, took 61 minutes on 2 CPU cores (2026-11-28,
+  alone, data to planning at K = 50); with it, 96 minutes alone on a 2-core Intel Xeon VM with
+  AVX-512 (2026-11-29, Pearson 0.992, all five policies in order). Before self-forcing it ranks
+  the five policies as the simulator does but for one swap of two policies within a standard error
+  of each other (Pearson 0.949 and 0.936, Spearman 0.9); its pushed T still turns into a blob at
+  contact (IoU 0.40 and 0.34 at the end of ``push``, copying the first frame 0.45), and planning
+  in it gains at K = 5 and 10 no more than about twice its noise and nothing at K = 50.
 - ``h100``: the same recipe and data at 32.5M parameters (depth 12, width 384, 6 heads) in
   bfloat16 with the fastest attention the GPU has, 3000 steps of batch 64 at learning rate 8e-4,
   checkpointed every 500 steps so that a run cut by a job limit resumes. Two training seeds ran
