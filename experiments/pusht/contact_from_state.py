@@ -14,8 +14,8 @@ actions are the simulator's), beside copying the T of the last context step.
 
 With ``--policies CONFIG`` it also rolls out the closed-loop simulator episodes of ``wmjax
 eval-policy``'s default policies for that profile (:func:`policy_episodes`: its held-out start
-states, 32 control steps): the episodes whose last frame goal 4's "T at the end of ``push``" is
-measured on, beside what the world model keeps there.
+states, 32 control steps): the episodes on whose last frame a policy evaluation scores the T
+(``block_iou_push_end`` of ``run.py``'s summary), beside what the world model keeps there.
 
 With ``--perceived`` the inputs are read from the dataset's 48-pixel frames instead
 (:func:`seen_states`: the agent's and the T's pixels, as ``wmjax.tasks.pusht.metrics`` reads
@@ -222,8 +222,8 @@ def policy_episodes(config_file: str, episodes: int, control_steps: int = 32,
   T, 2]`` of its ``episodes`` closed-loop simulator episodes of ``control_steps`` control steps,
   from the held-out start states and with the policy noise that ``eval-policy`` draws for the
   profile ``config_file`` (its ``--seed 0``; :func:`wmjax.tasks.pusht.evaluate.evaluate_policies`),
-  and with ``frames`` the states its frames show: the episodes whose last frame goal 4's "T at
-  the end of ``push``" scores."""
+  and with ``frames`` the states its frames show: the episodes on whose last frame a policy
+  evaluation scores the T."""
   import jax
 
   from wmjax.config import load_config
