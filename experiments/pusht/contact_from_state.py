@@ -169,8 +169,9 @@ def _mean_se(values: np.ndarray, episodes: np.ndarray) -> dict:
   first."""
   from wmjax.eval.metrics import mean_stderr
 
-  mean, stderr = mean_stderr([values[episodes == e].mean() for e in np.unique(episodes)])
-  return {"mean": float(mean), "stderr": float(stderr), "episodes": int(len(np.unique(episodes))),
+  ids = np.unique(episodes)
+  mean, stderr = mean_stderr([values[episodes == e].mean() for e in ids])
+  return {"mean": float(mean), "stderr": float(stderr), "episodes": int(len(ids)),
           "transitions": int(len(values))}
 
 
@@ -293,9 +294,11 @@ def main(argv=None) -> int:
   parser.add_argument("--out", required=True, help="JSON file for every number")
   args = parser.parse_args(argv)
 
-  def episodes(data_dir, split):  # (true states, actions, the states the inputs are read from)
-    read = read_split(data_dir, split, frames=args.perceived)
+  def inputs_from(read):  # (true states, actions, the states the inputs are read from)
     return read if args.perceived else read + (read[0],)
+
+  def episodes(data_dir, split):
+    return inputs_from(read_split(data_dir, split, frames=args.perceived))
 
   train_split = episodes(args.data, "train")
   keep = len(train_split[0]) - len(train_split[0]) // 10
@@ -307,7 +310,7 @@ def main(argv=None) -> int:
   if args.policies:
     for name, read in policy_episodes(args.policies, args.policy_episodes,
                                       frames=args.perceived).items():
-      splits[f"policy_{name}"] = read if args.perceived else read + (read[0],)
+      splits[f"policy_{name}"] = inputs_from(read)
   test, truth = transitions(*splits["test"]), transitions(*splits["test"][:2])
   result = {"data": args.data, "reference": args.reference, "seed": args.seed,
             "inputs": "read from the frames" if args.perceived else "the simulator's state",
