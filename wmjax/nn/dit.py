@@ -177,10 +177,10 @@ class STDiT(nn.Module):
     if self.action_fourier_features < 0:
       raise ValueError(f"action_fourier_features must be >= 0, got {self.action_fourier_features}")
     place = tuple(self.action_place)
-    if place and (len(place) % 2 or len(set(place)) != len(place)
+    if place and (len(place) != 2 or len(set(place)) != 2
                   or not all(0 <= i < self.action_dim for i in place)):
-      raise ValueError(f"action_place must be () or pairs of different action indexes (x, y) "
-                       f"below action_dim={self.action_dim}, got {self.action_place!r}")
+      raise ValueError(f"action_place must be () or two different action indexes (x, y) below "
+                       f"action_dim={self.action_dim}, got {self.action_place!r}")
     if place and self.cond not in ("frame", "per_frame"):
       raise ValueError(f"action_place places each frame's incoming action, so cond must be "
                        f"'frame' or 'per_frame', got {self.cond!r}")
@@ -205,8 +205,6 @@ class STDiT(nn.Module):
                                                     self.action_fourier_features, dtype=dtype)
     if self.action_place:
       self.place_embed = layers.PlaceEmbedder(d, dtype=dtype)
-      self.more_place_embeds = [layers.PlaceEmbedder(d, dtype=dtype)
-                                for k in range(1, len(self.action_place) // 2)]
     self.null_action = self.param("null_action", logical(nn.initializers.normal(0.02), "embed"),
                                   (d,))
     self.blocks = LayerStack(self.depth // 2, self.num_heads, self.mlp_ratio, self.causal_temporal,
@@ -392,10 +390,7 @@ class STDiT(nn.Module):
     tokens = tokens + pos.astype(dtype)
     if self.action_place:  # frame j's incoming action a_{j-1}; frame 0's (zeros) is not kept
       incoming = jnp.pad(actions, ((0, 0), (1, 0), (0, 0)))[:, first:first + m]
-      pairs = [list(self.action_place[k:k + 2]) for k in range(0, len(self.action_place), 2)]
-      place = self.place_embed(incoming[..., pairs[0]], gh, gw)  # [B, m, P, D]
-      for embed, pair in zip(self.more_place_embeds, pairs[1:]):
-        place = place + embed(incoming[..., pair], gh, gw)
+      place = self.place_embed(incoming[..., list(self.action_place)], gh, gw)  # [B, m, P, D]
       keep = self._frame_keeps(actions, action_mask, drop_actions, first, m)
       tokens = tokens + jnp.where(keep[:, :, None, None], place, 0).astype(dtype)
     rows, cols = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")

@@ -23,7 +23,6 @@ import os
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from wmjax.data import synthetic
@@ -31,8 +30,7 @@ from wmjax.env import RewardFn, WorldModelEnv
 from wmjax.eval import planning, policy_eval
 from wmjax.eval.video import (VIDEO_FORMATS, comparison, frame_grid, stack_rows, write_png,
                               write_video)
-from wmjax.frames import to_model, to_uint8
-from wmjax.tasks.pusht import perception
+from wmjax.frames import to_uint8
 from wmjax.tasks.pusht import simulator as pusht
 from wmjax.tasks.pusht.dataset import INSTRUCTION, PushT, PushTConfig
 from wmjax.tasks.pusht.metrics import pusht_metrics
@@ -116,7 +114,6 @@ def simulate_and_imagine(model, policy: pusht.PolicyFn, states, steps: int,
                                 key=policy_key, context=c,
                                 action_repeat=_params(config).action_repeat)
   start, known = truth["frames"][:, :c], truth["actions"][:, :c - 1]
-  policy, known = _with_seen_state(model, policy, known, truth["frames"][:, :c - 1])
   if scan:
     imagined = policy_eval.scan_episodes(
         model.world_model, model.params, policy, start, steps, rollout_key,
@@ -126,33 +123,6 @@ def simulate_and_imagine(model, policy: pusht.PolicyFn, states, steps: int,
   env = WorldModelEnv.from_model(model, seed=rollout_key)
   return truth, policy_eval.env_episodes(env, policy, start, steps, policy_key,
                                          context_actions=known)["frames"]
-
-
-ACTION_DIM = 2  # the simulator's: the agent's target (x, y)
-
-
-def _with_seen_state(model, policy: pusht.PolicyFn, known, known_frames):
-  """For a model whose actions also carry the state their frame shows
-  (:func:`.perception.perceived_state`, appended after the simulator's action): the policy with
-  that state read off the last frame it sees appended to its actions, and the known context
-  actions ``known [N, c-1, 2]`` with the state of ``known_frames [N, c-1, S, S, 3]``."""
-  extra = model.world_model.network.action_dim - ACTION_DIM
-  if extra == 0:
-    return policy, known
-  if extra != perception.STATE_FEATURES:
-    raise ValueError(f"a Push-T model takes {ACTION_DIM} action numbers, or "
-                     f"{ACTION_DIM + perception.STATE_FEATURES} with the seen state; this "
-                     f"one takes {model.world_model.network.action_dim}")
-
-  def seen(frames, key):
-    actions = policy(frames, key)
-    if actions.shape[1] != 1:
-      raise ValueError(f"the seen state goes with one action a call, got {actions.shape[1]}")
-    state = perception.perceived_state(to_model(frames[:, -1], xp=jnp))
-    return jnp.concatenate([actions, state[:, None].astype(actions.dtype)], -1)
-
-  state = np.asarray(perception.perceived_state(to_model(jnp.asarray(known_frames), xp=jnp)))
-  return seen, np.concatenate([known, state], -1).astype(np.float32)
 
 
 def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
