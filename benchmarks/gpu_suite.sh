@@ -78,20 +78,18 @@ rollout() {
 }
 
 # Settings compared, one knob at a time, unrolled layers (a scan stacks each layer's saved
-# activations, copies an unrolled stack does not make; 2026-11-26, H200: 612.5 ms unrolled against
-# 617.0 scanned with dots): what remat keeps, from weight matmuls (dots, today's default) through
-# attention outputs (dots_attention) and every matmul's input (dots_elementwise) to everything
-# (none: 131 GiB, an H200 only), and no remat over two micro-batches of 8. The fused Pallas kernels
-# measured here on 2026-11-26 were slower than XLA and were removed (benchmarks/RESULTS.md).
-# TRAIN_SETTINGS="remat=dots scan_layers=False;remat=none scan_layers=False" runs those settings
-# instead (';' between settings). Each runs under SETTING_TIMEOUT seconds (default 300: on an
-# H200 an unrolled XL/2 step did not compile within 110 s, 2026-11-27), so that one slow setting
-# cannot take a whole 10-minute device call; five settings need two calls.
+# activations, copies an unrolled stack does not make): what remat keeps, from weight matmuls
+# (dots) to everything (none: 131 GiB for XL/2, an H200 only), and no remat over two micro-batches
+# of 8. On an H200 (2026-11-30, benchmarks/RESULTS.md): XL/2 dots 607.0 ms, dots_attention 610.9,
+# none over two micro-batches 552.9; each XL/2 setting took about 2.5 minutes with its compile,
+# and a WPE-600M one more than 135 s. TRAIN_SETTINGS="remat=dots scan_layers=False;remat=none
+# scan_layers=False" runs those settings instead (';' between settings). Each runs under
+# SETTING_TIMEOUT seconds (default 300), so that one slow setting cannot take a whole 10-minute
+# device call; three settings fit one call.
 IFS=';' read -r -a TRAIN_SETTINGS <<< "${TRAIN_SETTINGS:-}"
 [[ ${#TRAIN_SETTINGS[@]} -gt 0 ]] || TRAIN_SETTINGS=(
-    "remat=dots scan_layers=False" "remat=dots_attention scan_layers=False"
-    "remat=dots_elementwise scan_layers=False" "remat=none scan_layers=False optim.grad_accum=2"
-    "remat=none scan_layers=False")
+    "remat=dots scan_layers=False" "remat=none scan_layers=False optim.grad_accum=2"
+    "remat=dots_elementwise scan_layers=False")
 
 setting_flags() {  # "k=v section.k=v" -> --config.model.k=v --config.section.k=v in flags,
   flags=() tag=""  # -v-v in tag

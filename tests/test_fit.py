@@ -13,7 +13,7 @@ import pytest
 from conftest import ROOT, tiny_config
 from wmjax.config import load_config
 from wmjax.train import aot, fit
-from wmjax.train.context import build_context, compile_step, fit_context, fit_to_memory, with_setting
+from wmjax.train.context import build_context, compile_step, fit_context, fit_to_memory
 from wmjax.train.step import ShardedTrainer
 
 # A small gridworld model: 8x8 RGB frames, 4-frame windows, global batch 16 on 8 devices.
@@ -92,6 +92,56 @@ def test_a_step_that_does_not_fit_stops_with_the_setting_to_change():
   assert len(asked) > 1 and f"grad_accum={max(a for _, a in asked)}," in str(error.value)
 
 
+@pytest.mark.unit
+def test_auto_fit_takes_the_setting_predicted_fastest_of_those_that_fit():
+  """IRASim-XL/2's step at batch 16 as compiled for an H100 (GiB per device; predicted ms from
+  the H200-calibrated cost model): no remat fits only over two micro-batches, dots_elementwise not
+  at all with one, dots with one. The search skips what cannot pay (full remat at one
+  micro-batch recomputes more than dots) and takes the fastest that fits, not the first."""
+  target = fit.parse_target("cpu:2")
+  config = tiny_config("gridworld.py", *SMALL, "model.remat='none'")
+  sizes = {("none", 1): (131.0, 520.0), ("none", 2): (60.3, 627.0),
+           ("dots_elementwise", 1): (93.1, 600.0), ("dots", 1): (60.2, 669.0),
+           ("full", 1): (24.0, 900.0)}
+
+  def measure(remat, accum, budget_bytes):
+    asked.append((remat, accum))
+    total, ms = sizes.get((remat, accum), (10.0 + 121.0 / accum, 520.0 + 100 * accum))
+    return (remat, accum), {"what": "train", "target": "h100", "batch": 16, "remat": remat,
+                            "grad_accum": accum, "total_gib": total, "arguments_gib": 10.0,
+                            "temp_gib": total - 10.0,
+                            "limit_gib": budget_bytes / fit.GIB, "predicted_ms": ms,
+                            "fits": total * fit.GIB <= budget_bytes}
+
+  asked = []
+  lines = []
+  _, report = fit.fit_step(config, target, measure, 1, int(75.1 * fit.GIB), log=lines.append)
+  assert (report["remat"], report["grad_accum"]) == ("none", 2)
+  assert asked == [("none", 1), ("none", 2), ("dots_elementwise", 1), ("dots", 1)]
+  assert [t["fits"] for t in report["tried"]] == [False, True, False, True]
+  assert "fits, predicted 627 ms a step" in lines[1]
+  sizes["dots", 1] = (60.2, 600.0)  # were dots the faster, it would be taken
+  asked = []
+  _, report = fit.fit_step(config, target, measure, 1, int(75.1 * fit.GIB), log=lines.append)
+  assert (report["remat"], report["grad_accum"]) == ("dots", 1)
+
+
+@pytest.mark.unit
+def test_the_cost_model_prices_the_steps_measured_on_an_h200():
+  """The package's efficiencies predict each IRASim-XL/2 step measured on one H200 (remat and
+  layer settings; their costs read off the steps' HLO by benchmarks/cost_model.py) within 5 %, and
+  order every two steps that differ by more than that as measured."""
+  measured = json.loads((ROOT / "benchmarks/results/h200/cost_model.json").read_text())
+  rates = fit.DEVICE_RATES[measured["rates"]]
+  points = [(p["step_ms"], 1e3 * fit.predicted_step_s(p["cost"], rates))
+            for p in measured["points"]]
+  assert len(points) >= 5
+  for step_ms, predicted_ms in points:
+    assert predicted_ms == pytest.approx(step_ms, rel=0.05)
+  for a, b in ((a, b) for a in points for b in points if a[0] < 0.95 * b[0]):
+    assert a[1] < b[1]
+
+
 REFUSAL = ("RESOURCE_EXHAUSTED: Ran out of memory on HBM, the total memory required for HLO "
            "temporaries (123.37G) exceeds available HBM (95.74G).")
 
@@ -114,7 +164,8 @@ def test_a_step_the_compiler_refuses_does_not_fit_and_the_ladder_climbs(monkeypa
   fitted, report = fit_context(build_context(config, fit.parse_target("cpu:2")),
                                budget_bytes=fit.GIB, batch=2, log=lines.append)
   assert fitted.config.model.remat == "dots_elementwise" and report["fits"]
-  assert report["tried"][0] == {"remat": "none", "grad_accum": 1, "total_gib": 123.37}
+  assert report["tried"][0] == {"remat": "none", "grad_accum": 1, "total_gib": 123.37,
+                                "fits": False, "predicted_ms": None}
   assert "more than 123 GiB per device, refused by the compiler" in lines[0]
   assert fit.refused_report(jax.errors.JaxRuntimeError("INTERNAL: boom"),
                             fit.parse_target("cpu:2")) is None
@@ -129,13 +180,10 @@ def test_targets_parse_and_refuse_clearly():
     fit.parse_target("h100:0")
   with pytest.raises(ValueError, match="needs 64 CPU devices"):
     fit.parse_target("cpu:64")
-  config = tiny_config("gridworld.py", *SMALL)
-  assert fit.fit_ladder(config, 16, 8) == [("full", 1), ("full", 2)]
-  assert fit.fit_ladder(with_setting(config, "none", 1), 8, 2)[:6] == [
-      ("none", 1), ("dots_elementwise", 1), ("dots_attention", 1), ("dots", 1), ("full", 1),
-      ("full", 2)]
-  assert fit.fit_ladder(with_setting(config, "dots_attention", 1), 8, 2)[:2] == [
-      ("dots_attention", 1), ("dots", 1)]
+  assert fit.remat_ladder("none") == ("none", "dots_elementwise", "dots", "full")
+  assert fit.remat_ladder("dots_attention") == ("dots_attention", "dots", "full")
+  assert fit.accumulations(1, 16, 8) == [1, 2] and fit.accumulations(2, 8, 2) == [2, 4]
+  assert fit.device_rates(fit.parse_target("cpu:2")) is None
 
 
 @pytest.mark.integration

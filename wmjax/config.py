@@ -195,7 +195,8 @@ class TrainConfig:
   eval_every: int = 5_000  # 0: no evaluation, neither periodic nor at the end
   eval_windows: int = 16  # held-out windows evaluated every eval_every steps
   max_checkpoints: int = 3
-  # fit before the first step: compiled memory against the device's limit (or the budget)
+  # fit before the first step: compiled memory against the device's limit (or the budget); where
+  # it does not fit, the remat and micro-batches predicted fastest of those that do
   auto_fit: bool = True
   memory_budget_gib: float | None = None
 

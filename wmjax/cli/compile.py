@@ -12,13 +12,15 @@ from wmjax.config import load_config
 def run(args, extra) -> int:
   """Compile the exact sharded train step (or one jitted rollout block) of a config for a target,
   without its hardware, and print per-device memory from XLA (arguments, outputs, temporaries,
-  total), the device's memory and whether it fits, the mesh, XLA's and the analytic FLOPs and the
-  compile time. When a train step does not fit, also the setting train.auto_fit would choose
-  (remat none -> dots_elementwise -> dots_attention -> dots -> full, then gradient-accumulation
-  micro-batches). Targets: h100[:N], h200[:N], a100[:N] (needs JAX's CUDA plugin, no GPU), TPU
-  topologies such as v5p:2x2x1, v5p:4x4x4, v5e:4x4, v6e:2x2 (needs libtpu, no TPU) and cpu:N. GPU
-  memory counts XLA_PYTHON_CLIENT_MEM_FRACTION (default 0.75) of the card. Exits 1 when the
-  config's own setting does not fit."""
+  total), the device's memory and whether it fits, the mesh, XLA's and the analytic FLOPs, the
+  compile time and, for a train step on a card or TPU of known rates, its predicted time (matmul
+  FLOPs and the bytes of the other kernels, from the optimized HLO). When a train step does not
+  fit, also the setting train.auto_fit would choose: of remat none -> dots_elementwise -> dots ->
+  full with the fewest gradient-accumulation micro-batches that fit, the one predicted fastest.
+  Targets: h100[:N], h200[:N], a100[:N] (needs JAX's CUDA plugin, no GPU), TPU topologies such as
+  v5p:2x2x1, v5p:4x4x4, v5e:4x4, v6e:2x2 (needs libtpu, no TPU) and cpu:N. GPU memory counts
+  XLA_PYTHON_CLIENT_MEM_FRACTION (default 0.75) of the card. Exits 1 when the config's own setting
+  does not fit."""
   import jax
 
   from wmjax.train import aot, fit
@@ -36,8 +38,11 @@ def run(args, extra) -> int:
   print(fit.describe(report))
   if "auto_fit" in report:
     choice = report["auto_fit"]
+    speed = ("" if choice["predicted_ms"] is None else
+             f", predicted {choice['predicted_ms']:.0f} ms a step")
     print(f"auto_fit would choose model.remat={choice['remat']!r} "
-          f"optim.grad_accum={choice['grad_accum']} ({choice['total_gib']:.3g} GiB per device)")
+          f"optim.grad_accum={choice['grad_accum']} ({choice['total_gib']:.3g} GiB per device"
+          f"{speed})")
   print(json.dumps(report, indent=2))
   if args.out:
     with open(args.out, "w") as f:

@@ -18,7 +18,7 @@ from wmjax.model import WorldModel
 from wmjax.nn import attention
 from wmjax.rollout import block_flops, rollout
 from wmjax.train.context import build_context, compile_step, fit_context
-from wmjax.train.fit import Target, memory_report
+from wmjax.train.fit import Target, cost_report, memory_report
 
 
 def compile_train(config: ml_collections.ConfigDict, target: Target, batch: int | None = None,
@@ -32,7 +32,8 @@ def compile_rollout(config: ml_collections.ConfigDict, target: Target, batch: in
                     budget_bytes: int | None = None) -> dict:
   """One rollout block (``rollout.context`` frames in, ``rollout.horizon`` out, with the config's
   sampler) jitted and compiled for the first device of ``target`` at ``batch`` rollouts (default
-  8) -> its report, as :func:`compile_train`'s (memory, fits, FLOPs, compile time)."""
+  8) -> its report, as :func:`compile_train`'s (memory, fits, FLOPs, predicted time, compile
+  time)."""
   world_model = WorldModel.from_config(config)
   net = world_model.network
   batch = batch or 8
@@ -56,7 +57,7 @@ def compile_rollout(config: ml_collections.ConfigDict, target: Target, batch: in
       "batch": batch, "context": c, "horizon": h, "sampler": config.sampling.sampler,
       "model_calls": calls, "dtype": str(net.dtype),
       "attention": attention.resolve_backend(net.attention_impl, net.dtype, target.platform),
-      **memory_report(compiled, target, budget_bytes),
+      **memory_report(compiled, target, budget_bytes), **cost_report(compiled, target),
       "analytic_flops": block_flops(world_model, batch, c, h, shape[0], shape[1]),
       "compile_s": time.perf_counter() - start,
   }
@@ -66,8 +67,8 @@ def compile_report(config: ml_collections.ConfigDict, target: Target, what: str 
                    batch: int | None = None, budget_bytes: int | None = None, log=print) -> dict:
   """The report of :func:`compile_train` (``what='train'``) or :func:`compile_rollout`
   (``'rollout'``) for ``target``. A train step that does not fit also gets ``auto_fit``: the
-  setting :func:`wmjax.train.context.fit_context` would choose (remat, grad_accum, its size and
-  what was tried)."""
+  setting :func:`wmjax.train.context.fit_context` would choose (remat, grad_accum, its size, its
+  predicted step time and what was tried)."""
   if what == "rollout":
     return compile_rollout(config, target, batch, budget_bytes)
   context = build_context(config, target)
@@ -75,5 +76,6 @@ def compile_report(config: ml_collections.ConfigDict, target: Target, what: str 
   if report["fits"] is False:
     _, chosen = fit_context(context, budget_bytes, batch, first=(context, report), log=log)
     report["auto_fit"] = {"remat": chosen["remat"], "grad_accum": chosen["grad_accum"],
-                          "total_gib": chosen["total_gib"], "tried": chosen["tried"]}
+                          "total_gib": chosen["total_gib"],
+                          "predicted_ms": chosen.get("predicted_ms"), "tried": chosen["tried"]}
   return report

@@ -79,8 +79,9 @@ def compile_step(context: TrainContext, batch: int | None = None,
   """The trainer's step compiled for the context's target at global ``batch`` (default
   ``config.batch_size``, checked against the mesh and this job's processes first) -> (compiled
   step, report): per-device memory (GiB) and whether it fits
-  ``budget_bytes`` (:func:`wmjax.train.fit.memory_report`), the mesh, the attention path, XLA's
-  and the analytic FLOPs and the compile time. Later steps of the trainer reuse the compiled
+  ``budget_bytes`` (:func:`wmjax.train.fit.memory_report`), what it executes and its predicted
+  time (:func:`wmjax.train.fit.cost_report`), the mesh, the attention path, XLA's and the
+  analytic FLOPs and the compile time. Later steps of the trainer reuse the compiled
   step. A step the compiler refuses for want of memory comes back as None with
   :func:`wmjax.train.fit.refused_report`."""
   trainer, net, target = context.trainer, context.world_model.network, context.target
@@ -92,7 +93,8 @@ def compile_step(context: TrainContext, batch: int | None = None,
                                  sharding=trainer.batch_sharding)
   try:
     compiled = trainer.compile(trainer.abstract_state, frames, actions)
-    report = fit.memory_report(compiled, target, budget_bytes)
+    report = {**fit.memory_report(compiled, target, budget_bytes),
+              **fit.cost_report(compiled, target)}
   except jax.errors.JaxRuntimeError as e:
     compiled, report = None, fit.refused_report(e, target, budget_bytes)
     if report is None:
@@ -124,8 +126,8 @@ def _measure(context: TrainContext, batch: int | None) -> fit.Measure:
 def fit_context(context: TrainContext, budget_bytes: int | None = None, batch: int | None = None,
                 first: tuple[TrainContext, dict] | None = None, log=print
                 ) -> tuple[TrainContext, dict]:
-  """:func:`wmjax.train.fit.fit_step` over the settings of ``context``: the context of the first
-  setting whose compiled step fits ``budget_bytes``, and its report."""
+  """:func:`wmjax.train.fit.fit_step` over the settings of ``context``: the context of the
+  setting predicted fastest of those whose compiled step fits ``budget_bytes``, and its report."""
   return fit.fit_step(context.config, context.target, _measure(context, batch),
                       context.data_parallel, budget_bytes, batch, first, log)
 
@@ -142,7 +144,8 @@ def with_setting(config: ml_collections.ConfigDict, remat: str, grad_accum: int
 
 def fit_to_memory(context: TrainContext, log=print) -> tuple[TrainContext, dict]:
   """Before the first step: the step compiled on the context's devices against the training
-  budget and, where it does not fit and ``train.auto_fit`` allows, the first setting that does
+  budget and, where it does not fit and ``train.auto_fit`` allows, the setting predicted fastest
+  of those that do
   (:func:`wmjax.train.fit.fit_for_training`) -> (context as trained, its report)."""
   return fit.fit_for_training(context.config, context.target, _measure(context, None),
                               context.data_parallel, log)

@@ -11,12 +11,15 @@ temporaries). Targets:
 ``v5p:2x2x1`` ...  a Cloud TPU topology (``v4``, ``v5e``, ``v5p``, ``v6e``); needs libtpu
 ``local``          the devices this process sees (what the trainer uses)
 
-:func:`fit_step` climbs the ladder remat none -> dots_elementwise -> dots_attention -> dots
--> full, then gradient-accumulation micro-batches 2, 4, 8, ... (with full remat) from the
-config's own setting until the compiled step fits the device's memory, and says what it chose and
-what it tried. It only chooses: the step of each setting is built and compiled by the caller
-(:mod:`wmjax.train.context`, which builds the mesh, the model and the trainer of a run in one
-place).
+:func:`fit_step` searches remat (none -> dots_elementwise -> dots -> full) and gradient-
+accumulation micro-batches (the config's, doubled as the batch allows) from the config's own: for
+each remat the fewest micro-batches whose compiled step fits the device's memory, a heavier remat
+only where it needs fewer micro-batches. Of the settings that fit it takes the one
+:func:`predicted_step_s` prices fastest (matmul FLOPs and the bytes every other kernel moves,
+read off the compiled step's optimized HLO by :mod:`wmjax.train.hlo_cost`, over the device's
+rates), and says what it chose and what it tried. It only chooses: the step of each setting is
+built and compiled by the caller (:mod:`wmjax.train.context`, which builds the mesh, the model
+and the trainer of a run in one place).
 """
 
 from __future__ import annotations
@@ -30,11 +33,27 @@ import jax
 import ml_collections
 
 from wmjax.errors import RunError
+from wmjax.train import hlo_cost
 
 GIB = 1024 ** 3
-# least recomputation first (wmjax.nn.dit.REMAT_POLICIES): at one accumulation, the first that
-# fits recomputes least
-REMAT_LADDER = ("none", "dots_elementwise", "dots_attention", "dots", "full")
+# What a layer keeps, least recomputation first (wmjax.nn.dit.REMAT_POLICIES). 'dots_attention'
+# is left out: on one H200 it ran no faster than 'dots' and took 4.7 GiB more (IRASim-XL/2,
+# benchmarks/RESULTS.md, 2026-11-30). A policy off the ladder starts it at the next one that
+# keeps less.
+REMAT_LADDER = ("none", "dots_elementwise", "dots", "full")
+_OFF_LADDER = {"dots_attention": "dots", "dots_all": "dots"}
+# One device's dense bf16 FLOP/s and memory bandwidth (bytes/s), from the vendors' datasheets.
+DEVICE_RATES = {"h100": (989e12, 3.35e12), "h200": (989e12, 4.8e12), "a100": (312e12, 2.039e12),
+                "v4": (275e12, 1.2e12), "v5e": (197e12, 8.19e11), "v5litepod": (197e12, 8.19e11),
+                "v5p": (459e12, 2.765e12), "v6e": (918e12, 1.64e12)}
+# Fragments of a local device's device_kind (lower case), first match, to its DEVICE_RATES name.
+_DEVICE_KINDS = (("h200", "h200"), ("h100", "h100"), ("a100", "a100"), ("v6", "v6e"),
+                 ("v5 lite", "v5e"), ("v5e", "v5e"), ("v5", "v5p"), ("v4", "v4"))
+# The fractions of those rates a train step reaches: fitted to five IRASim-XL/2 train steps (remat
+# and layer settings) measured on one H200, each predicted within 3.4 % (benchmarks/cost_model.py,
+# benchmarks/RESULTS.md, 2026-11-30). Not calibrated on other cards or on TPUs.
+MATMUL_EFFICIENCY = 0.54
+BANDWIDTH_EFFICIENCY = 0.80
 
 
 def _gpu_target(description: str, cores: int, fpus: int, capability: tuple[int, int],
@@ -192,19 +211,64 @@ def refused_report(error: Exception, target: Target, budget_bytes: int | None = 
   }
 
 
-def fit_ladder(config: ml_collections.ConfigDict, batch: int, data_parallel: int
-               ) -> list[tuple[str, int]]:
-  """(remat, grad_accum) settings from the config's own upward: more remat first, then more
-  micro-batches with full remat (as long as each device keeps at least one sample)."""
-  remat = config.model.remat
-  accum = config.optim.grad_accum
-  start = REMAT_LADDER.index(remat) if remat in REMAT_LADDER else 0
-  ladder = [(r, accum) for r in REMAT_LADDER[start:]]
-  k = accum * 2
+def remat_ladder(remat: str) -> tuple[str, ...]:
+  """The remat policies :func:`fit_step` tries from ``remat`` on: ``remat`` itself, then the
+  ladder's policies that keep less."""
+  if remat in REMAT_LADDER:
+    return REMAT_LADDER[REMAT_LADDER.index(remat):]
+  return (remat,) + REMAT_LADDER[REMAT_LADDER.index(_OFF_LADDER.get(remat, "none")):]
+
+
+def accumulations(start: int, batch: int, data_parallel: int) -> list[int]:
+  """Micro-batch counts :func:`fit_step` tries: ``start``, then doubling as long as every device
+  keeps at least one sample of each micro-batch of the global ``batch``."""
+  counts, k = [start], start * 2
   while batch % (data_parallel * k) == 0:
-    ladder.append(("full", k))
+    counts.append(k)
     k *= 2
-  return ladder
+  return counts
+
+
+def device_rates(target: Target) -> tuple[float, float] | None:
+  """(FLOP/s, bytes/s) of one device of ``target`` (:data:`DEVICE_RATES`); None where unknown
+  (CPUs, other cards)."""
+  name = target.spec.partition(":")[0].lower()
+  if name == "local" and target.platform != "cpu":
+    kind = target.devices[0].device_kind.lower()
+    name = next((rates for fragment, rates in _DEVICE_KINDS if fragment in kind), name)
+  return DEVICE_RATES.get(name)
+
+
+def predicted_step_s(cost: dict, rates: tuple[float, float]) -> float:
+  """Seconds one execution of a compiled step takes on a device of ``rates`` (FLOP/s, bytes/s),
+  by its ``cost`` (:func:`wmjax.train.hlo_cost.step_cost`): its matmul FLOPs at
+  :data:`MATMUL_EFFICIENCY` of the peak plus the bytes its other kernels move at
+  :data:`BANDWIDTH_EFFICIENCY` of the bandwidth."""
+  flops, bandwidth = rates
+  return (cost["matmul_flops"] / (MATMUL_EFFICIENCY * flops)
+          + cost["other_bytes"] / (BANDWIDTH_EFFICIENCY * bandwidth))
+
+
+def cost_report(compiled: jax.stages.Compiled, target: Target) -> dict:
+  """What one execution of ``compiled`` does (``hlo_cost``: :func:`wmjax.train.hlo_cost.step_cost`)
+  and the milliseconds :func:`predicted_step_s` gives it on ``target`` (``predicted_ms``; None
+  where the target's rates are unknown)."""
+  cost = hlo_cost.step_cost(compiled.as_text())
+  rates = device_rates(target)
+  return {"hlo_cost": cost,
+          "predicted_ms": None if rates is None else 1e3 * predicted_step_s(cost, rates)}
+
+
+def _next_count(report: dict, counts: list[int], i: int, limit: int) -> int:
+  """Index into ``counts`` of the fewest micro-batches after ``counts[i]`` whose step could fit
+  ``limit`` bytes, its temporaries taken to shrink as 1 / micro-batches (they shrink less: the
+  gradients stay, so no count that could fit is skipped); ``len(counts)`` when none can."""
+  temp, total = report.get("temp_gib"), report.get("total_gib")
+  if temp is None or total is None:
+    return i + 1
+  state = total - temp  # arguments and outputs: the train state
+  return next((j for j in range(i + 1, len(counts))
+               if (state + temp * counts[i] / counts[j]) * GIB <= limit), len(counts))
 
 
 class DoesNotFitError(RunError):
@@ -225,6 +289,9 @@ def describe(report: dict) -> str:
              if report["what"] == "train" else f"{report['model_calls']} model calls")
   verdict = ("" if report["fits"] is None else
              f" of {report['limit_gib']:.3g} -> {'fits' if report['fits'] else 'does not fit'}")
+  if report.get("predicted_ms") is not None:
+    verdict += (f", predicted {report['predicted_ms']:.0f} ms a "
+                f"{'step' if report['what'] == 'train' else 'block'}")
   head = f"{report['what']} on {report['target']} (batch {report['batch']}, {setting}): "
   if report.get("refused"):
     return (f"{head}more than {_gib(report['temp_gib'])} GiB per device, refused by the "
@@ -245,28 +312,49 @@ Measure = Callable[[str, int, Union[int, None]], tuple[Any, dict]]
 def fit_step(config: ml_collections.ConfigDict, target: Target, measure: Measure,
              data_parallel: int, budget_bytes: int | None = None, batch: int | None = None,
              first: tuple[Any, dict] | None = None, log=print) -> tuple[Any, dict]:
-  """The first setting of :func:`fit_ladder` whose step, as ``measure`` compiles it, fits
-  ``budget_bytes`` (default: what the target's allocator may take) -> (what ``measure`` built for
-  it, its report with ``tried``). ``data_parallel``: the devices the global ``batch`` (default
-  ``config.batch_size``) is split over; ``first``: the (built, report) of the config's own
-  setting if already compiled. :class:`DoesNotFitError` naming the smallest setting tried and its
-  size when none fits."""
+  """The setting whose step, as ``measure`` compiles it, fits ``budget_bytes`` (default: what the
+  target's allocator may take) and is predicted fastest (``predicted_ms`` of its report; where
+  the target's rates are unknown, the first found) -> (what ``measure`` built for it, its report
+  with ``tried``). For each policy of :func:`remat_ladder` from the config's own, the fewest
+  micro-batches of :func:`accumulations` that fit (a step that does not fit says by its
+  temporaries how many more to try); a policy that keeps less is tried only with fewer
+  micro-batches than one that keeps more needed, since with as many it only recomputes more.
+  ``data_parallel``: the devices the global ``batch`` (default ``config.batch_size``) is split
+  over; ``first``: the (built, report) of the config's own setting if already compiled.
+  :class:`DoesNotFitError` naming the smallest setting tried and its size when none fits."""
   limit = _limit(target, budget_bytes)
-  tried = []
-  for i, (remat, accum) in enumerate(fit_ladder(config, batch or config.batch_size,
-                                                data_parallel)):
-    built, report = first if i == 0 and first is not None else measure(remat, accum, budget_bytes)
-    tried.append({"remat": remat, "grad_accum": accum, "total_gib": report["total_gib"]})
-    log(f"fit: {describe(report)}")
-    if report["fits"]:
-      report["tried"] = tried
-      return built, report
-  smallest = min(tried, key=lambda t: float("inf") if t["total_gib"] is None else t["total_gib"])
-  raise DoesNotFitError(
-      f"no setting fits {limit / GIB:.3g} GiB per device on {target.spec}: the smallest tried, "
-      f"remat={smallest['remat']} grad_accum={smallest['grad_accum']}, needs "
-      f"{_gib(smallest['total_gib'])} GiB; use more devices (FSDP: the mesh's fsdp axis), a "
-      f"smaller batch or a smaller model")
+  counts = accumulations(config.optim.grad_accum, batch or config.batch_size, data_parallel)
+  own = (config.model.remat, config.optim.grad_accum)
+  tried, fitting = [], []
+  bound = len(counts)  # only fewer micro-batches than this index can pay for more recomputation
+  for remat in remat_ladder(config.model.remat):
+    i = 0
+    while i < bound:
+      setting = (remat, counts[i])
+      built, report = (first if setting == own and first is not None
+                       else measure(remat, counts[i], budget_bytes))
+      tried.append({"remat": remat, "grad_accum": counts[i], "total_gib": report["total_gib"],
+                    "fits": report["fits"], "predicted_ms": report.get("predicted_ms")})
+      log(f"fit: {describe(report)}")
+      if report["fits"]:
+        fitting.append((built, report))
+        bound = i
+        break
+      i = _next_count(report, counts, i, limit)
+    if bound == 0:
+      break
+  if not fitting:
+    smallest = min(tried,
+                   key=lambda t: float("inf") if t["total_gib"] is None else t["total_gib"])
+    raise DoesNotFitError(
+        f"no setting fits {limit / GIB:.3g} GiB per device on {target.spec}: the smallest tried, "
+        f"remat={smallest['remat']} grad_accum={smallest['grad_accum']}, needs "
+        f"{_gib(smallest['total_gib'])} GiB; use more devices (FSDP: the mesh's fsdp axis), a "
+        f"smaller batch or a smaller model")
+  priced = [f for f in fitting if f[1].get("predicted_ms") is not None]
+  built, report = min(priced, key=lambda f: f[1]["predicted_ms"]) if priced else fitting[0]
+  report["tried"] = tried
+  return built, report
 
 
 def training_budget(config: ml_collections.ConfigDict, target: Target) -> int | None:
@@ -280,7 +368,8 @@ def fit_for_training(config: ml_collections.ConfigDict, target: Target, measure:
                      data_parallel: int, log=print) -> tuple[Any, dict]:
   """Before the first step: the config's own setting, as ``measure`` compiles it against
   :func:`training_budget`, when it fits or no limit is known (the host CPU without a budget);
-  else, with ``train.auto_fit``, the first setting of :func:`fit_step` that fits -> (what
+  else, with ``train.auto_fit``, the setting :func:`fit_step` chooses (of those that fit, the one
+  predicted fastest) -> (what
   ``measure`` built, its report). :class:`DoesNotFitError` when the step cannot fit."""
   budget = training_budget(config, target)
   first = measure(config.model.remat, config.optim.grad_accum, budget)
@@ -295,8 +384,11 @@ def fit_for_training(config: ml_collections.ConfigDict, target: Target, measure:
                           f"train.auto_fit=True to choose remat and gradient accumulation, or "
                           f"lower batch_size")
   built, chosen = fit_step(config, target, measure, data_parallel, budget, first=first, log=log)
+  fitting = sum(1 for t in chosen["tried"] if t["fits"])
+  speed = ("" if chosen.get("predicted_ms") is None else
+           f", predicted {chosen['predicted_ms']:.0f} ms a step, the fastest of {fitting} that fit")
   log(f"auto_fit chose model.remat={chosen['remat']!r} optim.grad_accum={chosen['grad_accum']}: "
-      f"{chosen['total_gib']:.3g} GiB per device of {chosen['limit_gib']:.3g} (the config's "
+      f"{chosen['total_gib']:.3g} GiB per device of {chosen['limit_gib']:.3g}{speed} (the config's "
       f"remat={config.model.remat!r} grad_accum={config.optim.grad_accum} needs "
       f"{_gib(report['total_gib'])})")
   return built, chosen

@@ -1,17 +1,14 @@
-"""benchmarks/hlo_ops.py: every kernel of optimized HLO in its class (matmuls, attention, Pallas
+"""wmjax.train.hlo_cost: every kernel of optimized HLO in its class (matmuls, attention, Pallas
 kernels, transposes, copies, slices, reductions, elementwise, collectives), loop bodies counted
 once per iteration, bytes of slices counted as the slice, FLOPs of matmuls."""
 
-import sys
-
+import jax
+import jax.numpy as jnp
 import pytest
 
-from conftest import ROOT
+from wmjax.train import hlo_cost
 
 pytestmark = pytest.mark.unit
-
-sys.path.insert(0, str(ROOT / "benchmarks"))
-import hlo_ops  # noqa: E402
 
 # A loop of 5 iterations that transposes an f32[8,4] (a transpose fusion), scales it (a fusion
 # with a transpose inside that is not its root), stacks a row into f32[5,4,8] (a dynamic-update-
@@ -125,7 +122,9 @@ ENTRY %main (x.1: f32[8,4], s.1: f32[5,4,8]) -> f32[5,4,8] {
   %out = f32[5,4,8]{2,1,0} get-tuple-element(%while.1), index=2
   %q = f32[1,4,8]{2,1,0} bitcast(%x.1)
   %attn = (f32[1,4,8]{2,1,0}, f32[1,4]{1,0}, u8[0]{0}) custom-call(%q, %q, %q),
-      custom_call_target="__cudnn$fmhaSoftmax", metadata={op_name="jit(f)/attn/fmha"}
+      custom_call_target="__cudnn$fmhaSoftmax", metadata={op_name="jit(f)/attn/fmha"},
+      backend_config={"cudnn_fmha_backend_config":{"intermediate_tensor_shape":{"element_type":
+      "F32","dimensions":["1","1","4","4"]}}}
   %qk = f32[8,8]{1,0} fusion(%x.1, %x.1), kind=kCustom, calls=%fused_gemm,
       metadata={op_name="jit(f)/attn/qk"},
       backend_config={"fusion_backend_config":{"kind":"__triton_gemm"}}
@@ -141,7 +140,7 @@ ENTRY %main (x.1: f32[8,4], s.1: f32[5,4,8]) -> f32[5,4,8] {
 
 
 def test_kernels_are_classified_and_loop_bodies_counted_per_iteration():
-  rows = {(row.cls, row.op): row for row in hlo_ops.analyze(MODULE)}
+  rows = {(row.cls, row.op): row for row in hlo_cost.analyze(MODULE)}
   tile = 8 * 4 * 4  # bytes of one f32[8,4] (or f32[4,8], f32[1,4,8])
   transpose = rows["transpose", "layers/attn/transpose"]
   assert (transpose.count, transpose.moved) == (5, 5 * 2 * tile)
@@ -161,13 +160,33 @@ def test_kernels_are_classified_and_loop_bodies_counted_per_iteration():
   assert (qk.count, qk.moved, qk.flops) == (1, 4 * tile, 2 * 8 * 8 * 4)
   pallas = rows["pallas", "wmjax_dense_gelu"]
   assert (pallas.count, pallas.moved) == (5, 5 * 2 * tile)
-  assert rows["attention", "attn/fmha"].moved == 3 * tile + tile + 16
+  fmha = rows["attention", "attn/fmha"]  # Q K^T and P V over 4 x 4 scores of head dim 8
+  assert (fmha.moved, fmha.flops) == (3 * tile + tile + 16, 2 * (2 * 4 * 4 * 8))
   assert rows["elementwise", "mlp/gelu"].moved == 2 * tile
   assert rows["reduction", "norm/reduce_sum"].moved == tile + 32
   assert rows["collective", "psum"].moved == 2 * tile
   assert not any(cls == "other" for cls, _ in rows)  # the all-reduce's reducer is no kernel
-  summary = hlo_ops.summary(list(rows.values()))
+  summary = hlo_cost.summary(list(rows.values()))
   assert summary["total"]["kernels"] == 41
   assert summary["outside matmul"]["kernels"] == 35
   assert summary["transpose"]["gb"] == pytest.approx(20 * tile / 1e9)
   assert summary["matmul"]["tflop"] == pytest.approx(6 * 512 / 1e12)
+
+
+def test_a_scanned_step_costs_what_the_unrolled_one_does():
+  """XLA's own cost analysis counts a loop body once; the step's cost counts it per iteration, so
+  ten matmuls in a ``lax.scan`` cost what ten written out do."""
+  x, w = jnp.ones((64, 64)), jnp.ones((10, 64, 64))
+
+  def scanned(x, w):
+    return jax.lax.scan(lambda h, wi: (jnp.tanh(h @ wi), None), x, w)[0]
+
+  def unrolled(x, w):
+    for i in range(10):
+      x = jnp.tanh(x @ w[i])
+    return x
+
+  costs = [hlo_cost.step_cost(jax.jit(f).lower(x, w).compile().as_text())
+           for f in (scanned, unrolled)]
+  assert costs[0]["matmul_flops"] == costs[1]["matmul_flops"] == 10 * 2 * 64 ** 3
+  assert costs[0]["other_bytes"] >= 10 * 2 * 64 * 64 * 4  # each tanh reads and writes a tile
