@@ -13,8 +13,8 @@ def run(args, extra) -> int:
   """Compile the exact sharded train step (or one jitted rollout block) of a config for a target,
   without its hardware, and print per-device memory from XLA (arguments, outputs, temporaries,
   total), the device's memory and whether it fits, the mesh, XLA's and the analytic FLOPs, the
-  compile time and, for a train step on a card or TPU of known rates, its predicted time (matmul
-  FLOPs and the bytes of the other kernels, from the optimized HLO). When a train step does not
+  compile time and, on a card or TPU of known rates, its predicted time per step or block (matmul
+  FLOPs and the bytes of the other kernels, from the optimized HLO; fitted on an H200). When a train step does not
   fit, also the setting train.auto_fit would choose: of remat none -> dots_elementwise -> dots ->
   full with the fewest gradient-accumulation micro-batches that fit, the one predicted fastest.
   Targets: h100[:N], h200[:N], a100[:N] (needs JAX's CUDA plugin, no GPU), TPU topologies such as

@@ -369,8 +369,8 @@ def fit_for_training(config: ml_collections.ConfigDict, target: Target, measure:
   """Before the first step: the config's own setting, as ``measure`` compiles it against
   :func:`training_budget`, when it fits or no limit is known (the host CPU without a budget);
   else, with ``train.auto_fit``, the setting :func:`fit_step` chooses (of those that fit, the one
-  predicted fastest) -> (what
-  ``measure`` built, its report). :class:`DoesNotFitError` when the step cannot fit."""
+  predicted fastest) -> (what ``measure`` built, its report). :class:`DoesNotFitError` when the
+  step cannot fit."""
   budget = training_budget(config, target)
   first = measure(config.model.remat, config.optim.grad_accum, budget)
   report = first[1]
