@@ -198,6 +198,7 @@ def test_rollout_block_compiles_for_a_target_with_its_memory():
   assert (report["context"], report["horizon"]) == (1, 3) and report["model_calls"] > 0
   assert report["fits"] and 0 < report["arguments_gib"] < report["total_gib"] < 1
   assert report["analytic_flops"] > 0
+  assert report["hlo_cost"]["matmul_flops"] > 0 and report["predicted_ms"] is None  # CPU rates
   assert "rollout on cpu:2 (batch 2," in fit.describe(report)
 
 
@@ -216,6 +217,9 @@ def test_train_step_compiles_for_a_tpu_pod_slice_without_one():
   assert report["device_memory_gib"] == 95 and report["fits"]
   assert 0 < report["arguments_gib"] < report["total_gib"]
   assert report["xla_flops_per_device"] > 0
+  # its matmuls (convolutions on a TPU) are priced at the TPU's rates
+  assert report["hlo_cost"]["matmul_flops"] > report["xla_flops_per_device"]
+  assert report["predicted_ms"] > 0
 
 
 @pytest.mark.integration

@@ -190,3 +190,24 @@ def test_a_scanned_step_costs_what_the_unrolled_one_does():
            for f in (scanned, unrolled)]
   assert costs[0]["matmul_flops"] == costs[1]["matmul_flops"] == 10 * 2 * 64 ** 3
   assert costs[0]["other_bytes"] >= 10 * 2 * 64 * 64 * 4  # each tanh reads and writes a tile
+
+
+def test_a_tpu_matmul_compiled_as_a_convolution_counts_its_flops():
+  """TPUs compile a matmul to a ``convolution`` (here [4, 3, 32] from a 32 x 32 kernel, inside a
+  fusion): 2 x output elements x the kernel's elements per output feature."""
+  module = """HloModule m
+
+%fused_proj (p0: f32[4,3,32], p1: f32[32,32]) -> f32[4,3,32] {
+  %p0 = f32[4,3,32]{2,1,0} parameter(0)
+  %p1 = f32[32,32]{1,0} parameter(1)
+  ROOT %convolution.1 = f32[4,3,32]{2,1,0} convolution(%p0, %p1), window={size=1}, dim_labels=b0f_io->b0f
+}
+
+ENTRY %main (x: f32[4,3,32], w: f32[32,32]) -> f32[4,3,32] {
+  %x = f32[4,3,32]{2,1,0} parameter(0)
+  %w = f32[32,32]{1,0} parameter(1)
+  ROOT %proj = f32[4,3,32]{2,1,0} fusion(%x, %w), kind=kOutput, calls=%fused_proj
+}
+"""
+  cost = hlo_cost.step_cost(module)
+  assert cost["matmul_flops"] == 2 * (4 * 3 * 32) * 32

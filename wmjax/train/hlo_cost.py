@@ -11,8 +11,9 @@ Every kernel-level instruction (not the inside of a fusion) falls in one class, 
 fits:
 
 ``matmul``     a cuBLAS call (``__cublas$gemm``, ``__cublas$lt$matmul``), a cuDNN convolution, a
-               ``dot`` or a fusion with a ``dot`` inside (XLA's Triton GEMM fusions,
-               ``__triton_gemm``); with its FLOPs, 2·M·N·K from the dot's dimensions
+               ``dot``, a ``convolution`` (as TPUs compile matmuls) or a fusion with either
+               inside (XLA's Triton GEMM fusions, ``__triton_gemm``); with its FLOPs, 2·M·N·K
+               from the dot's dimensions
 ``attention``  a cuDNN attention call (``__cudnn$fmha...``); with its FLOPs, from its score shape
 ``pallas``     a Pallas kernel lowered through Triton (``__gpu$xla.gpu.triton``), listed under its
                ``name=``
@@ -63,6 +64,7 @@ _TRIP = re.compile(r'"known_trip_count":\{"n":"(\d+)"')
 _OP_NAME = re.compile(r'op_name="([^"]*)"')
 _TARGET = re.compile(r'custom_call_target="([^"]*)"')
 _PALLAS_NAME = re.compile(r'\bname = "([\w.\-]+)"')
+_DIM_LABELS = re.compile(r"\bdim_labels=\w+_(\w+)->\w+")
 _SCORES = re.compile(r'"intermediate_tensor_shape":\s*\{[^{}]*?"dimensions":\s*\[([^\]]*)\]')
 _CONTRACTING = re.compile(r'(?:lhs_contracting_dims=\{|"lhs_contracting_dimensions":\[)([^}\]]*)')
 CLASSES = ("matmul", "attention", "pallas", "memcpy", "slice", "transpose", "transposing", "copy",
@@ -254,7 +256,15 @@ def _written(inst: Instruction) -> int:
 
 
 def _flops(inst: Instruction, shapes: dict[str, str]) -> int:
-  """2·M·N·K of a ``dot`` or cuBLAS call: twice its output's elements times the contracted size."""
+  """2·M·N·K of a ``dot`` or cuBLAS call: twice its output's elements times the contracted size
+  (of a ``convolution``, as TPUs compile matmuls: the kernel's elements per output feature)."""
+  if inst.opcode == "convolution":
+    labels = _DIM_LABELS.search(inst.attributes)
+    kernel = arrays(shapes.get(inst.operands[1], "")) if len(inst.operands) > 1 else []
+    if not labels or not kernel or not arrays(inst.shape) or "o" not in labels.group(1):
+      return 0
+    per_output = _elements(kernel[0][1]) // max(1, kernel[0][1][labels.group(1).index("o")])
+    return 2 * _elements(arrays(inst.shape)[0][1]) * per_output
   contracting = _CONTRACTING.search(inst.attributes)
   lhs = arrays(shapes.get(inst.operands[0], "")) if inst.operands else []
   if not contracting or not lhs or not arrays(inst.shape):
@@ -293,7 +303,7 @@ def classify(inst: Instruction, computations: dict[str, list[Instruction]],
   if inst.opcode == "fusion":
     return _classify_fusion(inst, computations, written)
   read = sum(nbytes(shapes.get(o, "")) for o in inst.operands)
-  if inst.opcode == "dot":
+  if inst.opcode in ("dot", "convolution"):
     return Kernel("matmul", written, read, _flops(inst, shapes))
   if inst.opcode == "custom-call":
     cls = _target_class(inst) or "other"
@@ -323,8 +333,8 @@ def _classify_fusion(inst: Instruction, computations: dict[str, list[Instruction
   body = computations.get(called.group(2), []) if called else []
   fused_shapes = {i.name: i.shape for i in body}
   read = _fusion_reads(body)
-  matmuls = [i for i in body if i.opcode == "dot" or (i.opcode == "custom-call"
-                                                      and _target_class(i) == "matmul")]
+  matmuls = [i for i in body if i.opcode in ("dot", "convolution")
+             or (i.opcode == "custom-call" and _target_class(i) == "matmul")]
   if matmuls:
     return Kernel("matmul", written, read, sum(_flops(i, fused_shapes) for i in matmuls))
   heroes = _heroes(body) if body else []
