@@ -14,9 +14,10 @@ def run(args, extra) -> int:
   without its hardware, and print per-device memory from XLA (arguments, outputs, temporaries,
   total), the device's memory and whether it fits, the mesh, XLA's and the analytic FLOPs, the
   compile time and, on a card or TPU of known rates, its predicted time per step or block (matmul
-  FLOPs and the bytes of the other kernels, from the optimized HLO; fitted on an H200). When a train step does not
-  fit, also the setting train.auto_fit would choose: of remat none -> dots_elementwise -> dots ->
-  full with the fewest gradient-accumulation micro-batches that fit, the one predicted fastest.
+  FLOPs and the bytes of the other kernels, from the optimized HLO; fitted on an H200). When a
+  train step does not fit, also the setting train.auto_fit would choose: of remat none ->
+  dots_elementwise -> dots -> full with the fewest gradient-accumulation micro-batches that fit,
+  the one predicted fastest.
   Targets: h100[:N], h200[:N], a100[:N] (needs JAX's CUDA plugin, no GPU), TPU topologies such as
   v5p:2x2x1, v5p:4x4x4, v5e:4x4, v6e:2x2 (needs libtpu, no TPU) and cpu:N. GPU memory counts
   XLA_PYTHON_CLIENT_MEM_FRACTION (default 0.75) of the card. Exits 1 when the config's own setting

@@ -145,8 +145,8 @@ def with_setting(config: ml_collections.ConfigDict, remat: str, grad_accum: int
 def fit_to_memory(context: TrainContext, log=print) -> tuple[TrainContext, dict]:
   """Before the first step: the step compiled on the context's devices against the training
   budget and, where it does not fit and ``train.auto_fit`` allows, the setting predicted fastest
-  of those that do
-  (:func:`wmjax.train.fit.fit_for_training`) -> (context as trained, its report)."""
+  of those that do (:func:`wmjax.train.fit.fit_for_training`) -> (context as trained, its
+  report)."""
   return fit.fit_for_training(context.config, context.target, _measure(context, None),
                               context.data_parallel, log)
 

@@ -284,7 +284,7 @@ def _attention_flops(inst: Instruction, shapes: dict[str, str]) -> int:
     return 0
   dims = [int(d.strip(' "')) for d in scores.group(1).split(",") if d.strip(' "')]
   head_dim = _elements(query[0][1]) // max(1, _elements(tuple(dims[:-1])))
-  matmuls = 5 if "Backward" in (_TARGET.search(inst.attributes) or [""])[0] else 2
+  matmuls = 5 if _TARGET.search(inst.attributes).group(1).endswith("Backward") else 2
   return matmuls * 2 * _elements(tuple(dims)) * head_dim
 
 
