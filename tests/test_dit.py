@@ -6,12 +6,16 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
+from jax.sharding import NamedSharding, PartitionSpec
 
 from conftest import ROOT, jit_apply, perturbed, tiny_config
 from wmjax.config import load_config
-from wmjax.nn import STDiT, forward_flops, layers
 from wmjax.model import WorldModel
+from wmjax.nn import STDiT, forward_flops, layers
+from wmjax.nn.dit import layers_scanned, relayout_layers
+from wmjax.train.checkpoint import shapes_by_path
 
 pytestmark = pytest.mark.unit
 
@@ -137,15 +141,36 @@ def test_world_model_init_boxes_and_plain_arrays_are_interchangeable():
   np.testing.assert_array_equal(apply(boxed, x, t, a), apply(plain, x, t, a))
 
 
-def test_scanned_and_unrolled_layers_agree():
-  model, params, (x, t, a) = _model("per_frame")
+def test_scanned_and_unrolled_layers_agree_and_convert_both_ways():
+  """relayout_layers turns a scanned model's parameters (and its optimiser state, and abstract
+  arrays with shardings) into the unrolled model's and back, leaf for leaf."""
+  model, params, (x, t, a) = _model("per_frame", depth=4)  # two layers
   unrolled = model.clone(scan_layers=False)
-  p = nn.unbox(params)["params"]
-  stacked = p["blocks"]["layers"]
-  p_unrolled = dict(p, blocks={f"layer_{i}": jax.tree.map(lambda v: v[i], stacked)
-                               for i in range(model.depth // 2)})
-  np.testing.assert_allclose(jit_apply(unrolled)({"params": p_unrolled}, x, t, a),
+  p = nn.unbox(params)
+  p_unrolled = relayout_layers(p, scan=False)
+  expected = nn.unbox(jax.eval_shape(unrolled.init, jax.random.key(0), x, t, a))
+  assert jax.tree.structure(p_unrolled) == jax.tree.structure(expected)
+  assert layers_scanned(shapes_by_path(p)) and layers_scanned(shapes_by_path(p_unrolled)) is False
+  np.testing.assert_array_equal(p_unrolled["params"]["blocks"]["layer_1"]["spatial"]["mlp"]
+                                ["fc1"]["kernel"], p["params"]["blocks"]["layers"]["spatial"]
+                                ["mlp"]["fc1"]["kernel"][1])
+  np.testing.assert_allclose(jit_apply(unrolled)(p_unrolled, x, t, a),
                              jit_apply(model)(params, x, t, a), rtol=1e-5, atol=1e-5)
+  assert jax.tree.all(jax.tree.map(lambda u, v: bool((u == v).all()),
+                                   relayout_layers(p_unrolled, scan=True), p))
+  assert relayout_layers(p, scan=True)["params"]["blocks"].keys() == {"layers"}  # as it was
+  opt_state = optax.adam(1e-3).init(p)
+  assert jax.tree.structure(relayout_layers(opt_state, scan=False)) == jax.tree.structure(
+      optax.adam(1e-3).init(p_unrolled))
+  mesh = jax.make_mesh((1,), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
+  abstract = jax.tree.map(lambda v: jax.ShapeDtypeStruct(v.shape, v.dtype, sharding=NamedSharding(
+      mesh, PartitionSpec(*(None,) * v.ndim))), p_unrolled)
+  stacked = relayout_layers(abstract, scan=True)["params"]["blocks"]["layers"]["spatial"]["mlp"]
+  assert stacked["fc1"]["kernel"].shape == (model.depth // 2,) + abstract["params"]["blocks"][
+      "layer_0"]["spatial"]["mlp"]["fc1"]["kernel"].shape
+  assert stacked["fc1"]["kernel"].sharding.spec == PartitionSpec(None, None, None)
+  with pytest.raises(ValueError, match="cannot stack layers"):
+    relayout_layers({"blocks": {"layer_0": {}, "layer_2": {}}}, scan=True)
 
 
 @pytest.mark.slow

@@ -162,6 +162,33 @@ def test_config_changes_safe_on_resume_or_named_are_accepted_and_recorded(traine
 
 @pytest.mark.integration
 @pytest.mark.slow
+def test_layers_trained_scanned_resume_and_load_unrolled(trained_copy, data_dir):
+  """model.scan_layers may change on resume (accepted as safe, parameters and optimiser state
+  unstacked) and on loading: either layout reads into either, and computes the same."""
+  train(gridworld_config(data_dir, **{"model.scan_layers": False, "train.num_steps": 5}),
+        str(trained_copy))
+  record = json.loads((trained_copy / "config_changes.jsonl").read_text())
+  assert record["changes"]["model.scan_layers"] == {"checkpoint": True, "now": False,
+                                                    "accepted": "safe"}
+  stored = Checkpointer(str(trained_copy / "checkpoints")).stored_shapes(5)
+  assert not any("/layers/" in k for k in stored)
+  assert any(k.startswith("opt_state/") and "/blocks/layer_0/" in k for k in stored)
+  scanned = load_model(str(trained_copy), step=4)
+  unrolled = load_model(str(trained_copy), step=4, overrides=["model.scan_layers=False"])
+  assert "layer_0" in unrolled.params["params"]["blocks"]
+  key = jax.random.key(0)
+  x = jax.random.normal(key, (2, 6, 16, 16, 3))
+  levels, actions = jnp.full((2, 6), 500), jax.random.normal(key, (2, 5, 4))
+  mask = jnp.ones((2, 5), bool)
+  np.testing.assert_allclose(unrolled.world_model.denoise(unrolled.params, x, levels, actions, mask),
+                             scanned.world_model.denoise(scanned.params, x, levels, actions, mask),
+                             rtol=1e-5, atol=1e-5)
+  later = load_model(str(trained_copy), step=5, overrides=["model.scan_layers=True"])
+  assert set(later.params["params"]["blocks"]) == {"layers"}
+
+
+@pytest.mark.integration
+@pytest.mark.slow
 def test_shape_change_on_resume_is_one_clear_error(trained_copy, data_dir, capfd):
   """3: a wider model stops at once with one message naming the key, no traceback."""
   assert _cli_train(trained_copy, data_dir, **{"model.hidden_size": 64}) == 1

@@ -22,7 +22,7 @@ from wmjax.diffusion import objectives
 from wmjax.diffusion.sampling import (DenoiseFn, SamplerConfig, classifier_free_guidance,
                                       context_inputs, window_denoiser)
 from wmjax.errors import CheckpointError, describe_error, ignore_closed_loop_callbacks
-from wmjax.nn.dit import STDiT
+from wmjax.nn.dit import STDiT, relayout_layers
 from wmjax.parallel import abstract_with_shardings, local_data_mesh
 
 Params = Any
@@ -148,8 +148,10 @@ def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
                overrides: Sequence[str] = (), param_dtype: str = "float32") -> LoadedModel:
   """The parameters (``params='ema'`` or ``'raw'``), config and action statistics of a training
   checkpoint in ``workdir`` (the latest, or ``step``); nothing else of the train state is read.
-  ``overrides`` (``dotted.key=value``) change inference settings such as ``sampling.num_steps``
-  or ``model.dtype``; ``param_dtype='bfloat16'`` halves the parameters' memory for inference."""
+  ``overrides`` (``dotted.key=value``) change inference settings such as ``sampling.num_steps``,
+  ``model.dtype`` or ``model.scan_layers`` (the saved layers are stacked or unstacked to match,
+  :func:`wmjax.nn.dit.relayout_layers`); ``param_dtype='bfloat16'`` halves the parameters'
+  memory for inference."""
   if params not in ("ema", "raw"):
     raise ValueError(f"params must be 'ema' or 'raw', got {params!r}")
   directory = os.path.join(os.path.abspath(os.path.expanduser(workdir)), "checkpoints")
@@ -180,6 +182,8 @@ def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
 
     config = ml_collections.ConfigDict(read("config", dict(config=ocp.args.JsonRestore())).config)
     stats = read("action_stats", dict(action_stats=ocp.args.JsonRestore())).action_stats
+    # the layout the layers were saved in; model.scan_layers=... may ask for the other
+    saved_scan = bool(config.get("model", {}).get("scan_layers", STDiT.scan_layers))
     # A checkpoint written before a config key existed gets its default (the schema in
     # wmjax.config), which an override may then change (e.g. sampling.kv_cache).
     config = apply_overrides(config, overrides, strict=False)
@@ -190,13 +194,15 @@ def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
                                  min(config.data.frames, config.model.num_frames))))
     replicated = jax.sharding.NamedSharding(local_data_mesh(), jax.sharding.PartitionSpec())
     key = "ema_params" if params == "ema" else "params"
-    target = {key: abstract_with_shardings(abstract, jax.tree.map(lambda _: replicated, abstract))}
+    target = {key: relayout_layers(abstract_with_shardings(
+        abstract, jax.tree.map(lambda _: replicated, abstract)), saved_scan)}
     restored = read("state", dict(state=ocp.args.PyTreeRestore(
         target, partial_restore=True,
         restore_args=ocp.checkpoint_utils.construct_restore_args(target))))
   finally:
     manager.close()
-  weights = jax.tree.map(lambda p: p.astype(param_dtype), restored.state[key])
+  weights = jax.tree.map(lambda p: p.astype(param_dtype),
+                         relayout_layers(restored.state[key], config.model.scan_layers))
   return LoadedModel(config, world_model, weights,
                      ActionStats.from_dict(stats), int(step),
                      make_codec(config.codec))

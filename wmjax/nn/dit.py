@@ -29,6 +29,8 @@ gives what :meth:`STDiT.__call__` gives for them on the whole window.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -121,6 +123,81 @@ class LayerStack(nn.Module):
                                                      frame_pos if i == 0 else None)
       kvs.append(kv)
     return x, (jax.tree.map(lambda *a: jnp.stack(a), *kvs) if return_kv else None)
+
+
+def _stacked(leaves: list):
+  """One leaf with a new leading axis over ``leaves`` (arrays, or ShapeDtypeStructs whose
+  sharding gains an unsharded leading axis)."""
+  first = leaves[0]
+  if not isinstance(first, jax.ShapeDtypeStruct):
+    return jnp.stack(leaves)
+  sharding = first.sharding
+  if isinstance(sharding, jax.sharding.NamedSharding):
+    sharding = jax.sharding.NamedSharding(sharding.mesh,
+                                          jax.sharding.PartitionSpec(None, *sharding.spec))
+  return jax.ShapeDtypeStruct((len(leaves),) + tuple(first.shape), first.dtype, sharding=sharding)
+
+
+def _layer(leaf, i: int):
+  """Layer ``i`` of a stacked leaf (its leading axis dropped)."""
+  if not isinstance(leaf, jax.ShapeDtypeStruct):
+    return leaf[i]
+  sharding = leaf.sharding
+  if isinstance(sharding, jax.sharding.NamedSharding):
+    sharding = jax.sharding.NamedSharding(sharding.mesh,
+                                          jax.sharding.PartitionSpec(*sharding.spec[1:]))
+  return jax.ShapeDtypeStruct(tuple(leaf.shape[1:]), leaf.dtype, sharding=sharding)
+
+
+def _stack_layers(blocks: dict, scan: bool) -> dict:
+  """A :class:`LayerStack`'s variables ``{'layers': stacked}`` or ``{'layer_i': ...}`` laid out
+  as ``scan`` asks."""
+  unrolled = sorted((k for k in blocks if k.startswith("layer_")), key=lambda k: int(k[6:]))
+  if scan and unrolled:
+    if "layers" in blocks or unrolled != [f"layer_{i}" for i in range(len(unrolled))]:
+      raise ValueError(f"cannot stack layers {unrolled} beside {sorted(blocks)}: expected "
+                       f"layer_0 .. layer_{{n-1}} and nothing else")
+    return {"layers": jax.tree.map(lambda *a: _stacked(list(a)), *(blocks[k] for k in unrolled))}
+  if not scan and "layers" in blocks:
+    stacked = blocks["layers"]
+    count = {leaf.shape[0] for leaf in jax.tree.leaves(stacked)}
+    if len(count) != 1 or len(blocks) != 1:
+      raise ValueError(f"cannot unstack {sorted(blocks)}: expected one 'layers' entry whose "
+                       f"arrays share a leading axis, got leading axes {sorted(count)}")
+    return {f"layer_{i}": jax.tree.map(lambda a, i=i: _layer(a, i), stacked)
+            for i in range(count.pop())}
+  return dict(blocks)
+
+
+def relayout_layers(tree, scan: bool):
+  """``tree`` with the layers of every ST-DiT in it laid out as ``model.scan_layers=scan``
+  keeps them: stacked along a leading axis under ``blocks/layers`` (scanned) or one
+  ``blocks/layer_i`` each (unrolled). The two layouts compute the same function, so a checkpoint
+  trained with one runs (and trains on) with the other. ``tree``: parameters, an optimiser
+  state or a whole train state (any pytree whose dicts mirror the parameters), of arrays or of
+  ``jax.ShapeDtypeStruct``s (a stacked one's sharding gains an unsharded leading axis); a tree
+  laid out so already comes back with the same leaves."""
+  if isinstance(tree, Mapping):
+    out = {k: relayout_layers(v, scan) for k, v in tree.items()}
+    if isinstance(out.get("blocks"), dict):
+      out["blocks"] = _stack_layers(out["blocks"], scan)
+    return out if isinstance(tree, dict) else type(tree)(out)
+  children, treedef = jax.tree_util.tree_flatten(tree, is_leaf=lambda x: x is not tree)
+  if treedef.num_leaves == 1 and treedef.num_nodes == 1:  # a leaf
+    return tree
+  return treedef.unflatten([relayout_layers(c, scan) for c in children])
+
+
+def layers_scanned(paths: Iterable[str]) -> bool | None:
+  """Whether the ST-DiT layers named by ``paths`` (``'params/blocks/layers/...'``, as
+  :func:`wmjax.train.checkpoint.shapes_by_path` names a tree's arrays) are stacked (True) or
+  unrolled (False); None when none is named."""
+  paths = list(paths)
+  if any("blocks/layers/" in p for p in paths):
+    return True
+  if any("blocks/layer_" in p for p in paths):
+    return False
+  return None
 
 
 class STDiT(nn.Module):

@@ -169,17 +169,18 @@ class Checkpointer:
                            f"{os.path.join(self.directory, str(step), item)}: "
                            f"{describe_error(error)}")
 
-  def restore_newest(self, abstract_state: Any, check: Callable[[int, dict, dict], Any],
+  def restore_newest(self, check: Callable[[int, dict, dict], tuple[Any, Any]],
                      damaged_dir: str) -> tuple[Any, int, Any] | None:
     """``(state, step, check's answer)`` of the newest checkpoint that reads back, or None when
-    there is none. ``check(step, saved config, stored shapes)`` runs before the state is read
-    and raises to refuse it (a refusal stops the search). A damaged newer checkpoint is moved to
-    ``damaged_dir`` (kept, never deleted) with a warning; with several processes it stops the run
-    instead, naming the intact one."""
+    there is none. ``check(step, saved config, stored shapes)`` runs before the state is read:
+    it returns ``(answer, abstract state to read it into)`` or raises to refuse it (a refusal
+    stops the search). A damaged newer checkpoint is moved to ``damaged_dir`` (kept, never
+    deleted) with a warning; with several processes it stops the run instead, naming the intact
+    one."""
     damaged = []
     for step in reversed(self.all_steps()):
       try:
-        answer = check(step, self.read_config(step), self.stored_shapes(step))
+        answer, abstract_state = check(step, self.read_config(step), self.stored_shapes(step))
         state = self.restore(step, abstract_state)
       except CheckpointError as e:
         damaged.append((step, e))

@@ -52,6 +52,7 @@ from wmjax.eval.trajectories import Trajectories
 from wmjax.eval.video import comparison, stack_rows, write_video
 from wmjax.frames import to_model
 from wmjax.model import LoadedModel, WorldModel
+from wmjax.nn.dit import layers_scanned, relayout_layers
 from wmjax.registry import frame_metrics_of
 from wmjax.train.checkpoint import Checkpointer, shapes_by_path
 from wmjax.train.context import TrainContext, set_up
@@ -209,14 +210,21 @@ def _resume(checkpoints: Checkpointer, trainer: ShardedTrainer, config: ml_colle
   ``WORKDIR/damaged_checkpoints``), or None when there is none; a config that may not resume
   stops the run (:func:`wmjax.train.resume.check_resume`), and the changes it accepts are
   recorded."""
-  wanted = shapes_by_path(trainer.abstract_state)
-  restored = checkpoints.restore_newest(
-      trainer.abstract_state,
-      lambda step, saved, stored: check_resume(step, saved, config, stored, wanted, allow),
-      os.path.join(workdir, "damaged_checkpoints"))
+
+  def check(step, saved, stored):
+    # layers saved in the other layout (model.scan_layers) are read as saved, then converted
+    scanned = layers_scanned(stored)
+    as_saved = (trainer.abstract_state if scanned in (None, config.model.scan_layers)
+                else relayout_layers(trainer.abstract_state, scanned))
+    return check_resume(step, saved, config, stored, shapes_by_path(as_saved), allow), as_saved
+
+  restored = checkpoints.restore_newest(check, os.path.join(workdir, "damaged_checkpoints"))
   if restored is None:
     return None
   state, step, (changes, accepted_by) = restored
+  if "model.scan_layers" in changes:
+    state = jax.device_put(relayout_layers(state, config.model.scan_layers),
+                           trainer.state_shardings)
   if changes and is_chief:
     record_config_changes(workdir, step, changes, accepted_by)
     print("config changes accepted on resume: " + ", ".join(
