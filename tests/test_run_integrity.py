@@ -29,7 +29,7 @@ from wmjax.eval import inputs
 from wmjax.model import WorldModel, load_model
 from wmjax.tasks.gridworld import dataset as gridworld
 from wmjax.train.checkpoint import Checkpointer
-from wmjax.train.loop import NonFiniteLossError, train
+from wmjax.train.loop import NonFiniteLossError, initial_weights, train
 from wmjax.train.resume import ConfigChangeError, check_resume
 from wmjax.train.step import ShardedTrainer
 from wmjax.train.workdir import LOCK_NAME, WorkdirLock, WorkdirLockedError
@@ -185,6 +185,28 @@ def test_layers_trained_scanned_resume_and_load_unrolled(trained_copy, data_dir)
                              rtol=1e-5, atol=1e-5)
   later = load_model(str(trained_copy), step=5, overrides=["model.scan_layers=True"])
   assert set(later.params["params"]["blocks"]) == {"layers"}
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_init_from_starts_a_new_run_from_another_runs_weights(trained_workdir, data_dir, tmp_path):
+  """train.init_from: a new run (unrolled layers here) starts from the EMA weights of another
+  workdir's newest checkpoint; a model of other shapes, or of the same shapes computing another
+  function (other positions), is one clear error."""
+  source = str(trained_workdir)
+  # learning rate 0: the one step leaves the weights as they came (the EMA of equal weights too)
+  train(gridworld_config(data_dir, **{"train.init_from": repr(source), "model.scan_layers": False,
+                                      "optim.learning_rate": 0.0, "train.num_steps": 1,
+                                      "train.checkpoint_every": 1}), str(tmp_path / "tuned"))
+  tuned = load_model(str(tmp_path / "tuned"), params="raw", overrides=["model.scan_layers=True"])
+  assert jax.tree.all(jax.tree.map(lambda a, b: bool((a == b).all()), tuned.params,
+                                   load_model(source).params))
+  for key, value, message in (("model.hidden_size", 64, r"model.hidden_size \(32 there, 64 here\)"),
+                              ("model.spatial_pos", "'sincos'",
+                               r"model.spatial_pos \('rope' there, 'sincos' here\)")):
+    with pytest.raises(ConfigChangeError, match=r"train.init_from=.*its model differs from this "
+                       r"config's in " + message + r"; set them as it has them"):
+      initial_weights(gridworld_config(data_dir, **{"train.init_from": repr(source), key: value}))
 
 
 @pytest.mark.integration

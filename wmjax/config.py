@@ -199,6 +199,9 @@ class TrainConfig:
   # it does not fit, the remat and micro-batches predicted fastest of those that do
   auto_fit: bool = True
   memory_budget_gib: float | None = None
+  # a workdir whose newest checkpoint's EMA weights (either layer layout; an imported IRASim
+  # model's too) start a new run instead of random ones: fine-tuning. Ignored on resume.
+  init_from: str = ""
 
 
 @dataclasses.dataclass(frozen=True)

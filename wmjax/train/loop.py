@@ -51,13 +51,13 @@ from wmjax.eval.rollouts import run_rollouts
 from wmjax.eval.trajectories import Trajectories
 from wmjax.eval.video import comparison, stack_rows, write_video
 from wmjax.frames import to_model
-from wmjax.model import LoadedModel, WorldModel
+from wmjax.model import LoadedModel, WorldModel, load_model
 from wmjax.nn.dit import layers_scanned, relayout_layers
 from wmjax.registry import frame_metrics_of
 from wmjax.train.checkpoint import Checkpointer, shapes_by_path
 from wmjax.train.context import TrainContext, set_up
 from wmjax.train.data import eval_trajectories
-from wmjax.train.resume import check_resume
+from wmjax.train.resume import ConfigChangeError, check_resume, config_changes
 from wmjax.train.self_forcing import model_frames
 from wmjax.train.step import ShardedTrainer
 from wmjax.train.workdir import (METRICS_LOG, claimed, record_config_changes,
@@ -232,6 +232,32 @@ def _resume(checkpoints: Checkpointer, trainer: ShardedTrainer, config: ml_colle
   return state, step
 
 
+# model keys that change how the network computes or trains, not the function its weights are
+_HOW_IT_COMPUTES = ("model.remat", "model.scan_layers", "model.dtype", "model.attention_impl",
+                    "model.action_dropout")
+
+
+def initial_weights(config: ml_collections.ConfigDict) -> Any:
+  """The EMA weights of the newest checkpoint in ``config.train.init_from``, laid out as this
+  config's layers are: where a new run starts. A :class:`ConfigChangeError` when the two model
+  sections differ in anything but :data:`_HOW_IT_COMPUTES` (the weights would compute another
+  function, or not fit)."""
+  source = config.train.init_from
+  loaded = load_model(source, overrides=[f"model.scan_layers={config.model.scan_layers}",
+                                         "codec.kind='pixel'"])  # the weights alone
+  differing = {key: change for key, change in config_changes(
+      {"model": loaded.config.model.to_dict()}, {"model": config.model.to_dict()}).items()
+               if key not in _HOW_IT_COMPUTES}
+  if differing:
+    raise ConfigChangeError(
+        f"train.init_from={source!r}: its model differs from this config's in " + ", ".join(
+            f"{key} ({old!r} there, {new!r} here)" for key, (old, new) in differing.items())
+        + "; set them as it has them (--config.model.KEY=VALUE): its weights compute another "
+        "function, or do not fit, in this model")
+  print(f"parameters from step {loaded.step} of {source}", flush=True)
+  return loaded.params
+
+
 def train(config: ml_collections.ConfigDict, workdir: str, *,
           allow_config_change: Sequence[str] = ()) -> tuple[Any, dict]:
   """Train (or resume) in ``workdir``; returns the final train state and evaluation metrics
@@ -362,6 +388,12 @@ class _Run:
                       self.is_chief)
     if resumed is None:
       self.state, self.start = self.context.trainer.init(jax.random.key(self.config.seed)), 0
+      if self.config.train.init_from:
+        params = jax.device_put(initial_weights(self.config),
+                                self.context.trainer.state_shardings.params)
+        # two buffers: the step donates the state, and one buffer cannot be donated twice
+        self.state = self.state.replace(params=params,
+                                        ema_params=jax.tree.map(jnp.copy, params))
     else:
       self.state, self.start = resumed
       print(f"resumed from step {self.start} in {self.checkpoints.directory}", flush=True)
