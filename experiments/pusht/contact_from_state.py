@@ -17,6 +17,13 @@ eval-policy``'s default policies for that profile (:func:`policy_episodes`: its 
 states, 32 control steps): the episodes on whose last frame a policy evaluation scores the T
 (``block_iou_push_end`` of ``run.py``'s summary), beside what the world model keeps there.
 
+With ``--closed_loop`` (and ``--policies``) the learner is also run as a world model in those
+policies' closed loop (:func:`closed_loop`): a second MLP predicts the agent, the predicted
+state is drawn by the simulator's own renderer, the policy acts on those frames, and the T of
+the last step is scored against the simulator's episode under the same policy and noise. That
+is what goal 4 scores a world model on, for a learner of the same budget whose drawing is exact:
+how much of the T a closed loop of this accuracy keeps.
+
 With ``--perceived`` the inputs are read from the dataset's 48-pixel frames instead
 (:func:`seen_states`: the agent's and the T's pixels, as ``wmjax.tasks.pusht.metrics`` reads
 them): whether the frames a world model sees still hold what the state holds.
@@ -90,6 +97,65 @@ def transitions(states: np.ndarray, actions: np.ndarray, seen: np.ndarray | None
   return {"inputs": inputs, "targets": targets.astype(np.float32),
           "now": s_now[:, 2:5].astype(np.float64), "next": s_next[:, 2:5].astype(np.float64),
           "moved": np.linalg.norm(s_next[:, 2:4] - states[ep, step, 2:4], axis=1), "episode": ep}
+
+
+def agent_targets(states: np.ndarray, seen: np.ndarray | None = None) -> np.ndarray:
+  """The agent's true position at ``t + 1`` in the seen T's frame at ``t``, in units of
+  ``POSITION_SCALE``, for every transition of :func:`transitions` -> ``[N, 2]``."""
+  seen = states if seen is None else seen
+  e, t = states.shape[:2]
+  ep, step = (np.asarray(v) for v in zip(*[(i, j) for i in range(e) for j in range(1, t - 1)]))
+  now = seen[ep, step]
+  local = _rotate((states[ep, step + 1, :2] - now[:, 2:4])[:, None], -now[:, 4])[:, 0]
+  return (local / POSITION_SCALE).astype(np.float32)
+
+
+def agent_from(targets: np.ndarray, now: np.ndarray) -> np.ndarray:
+  """``targets [N, 2]`` (as :func:`agent_targets` writes them) and the T's poses at ``t`` ->
+  the agent's world positions ``[N, 2]``."""
+  return now[:, :2] + _rotate(targets[:, None] * POSITION_SCALE, now[:, 2])[:, 0]
+
+
+def closed_loop(predict, predict_agent, policy, states: np.ndarray, actions: np.ndarray,
+                steps: int, key, *, image_size: int, action_repeat: int,
+                perceived: bool = False) -> np.ndarray:
+  """``policy`` run closed loop in the learned model from the first two steps of ``states [E,
+  T, 5]`` and the action between them: the T's next pose from ``predict``, the agent's from
+  ``predict_agent``, each step's predicted state drawn by the simulator's renderer
+  (:class:`PushTSimulator` reset to it) and shown to the policy, which is called as
+  :func:`wmjax.tasks.pusht.simulator.simulate_policy` calls it (the same keys). With
+  ``perceived`` the learner's inputs are read back off those frames (:func:`seen_states`), as a
+  world model's are off its own. Returns the predicted states ``[E, 2 + steps, 5]``."""
+  import jax
+
+  from wmjax.frames import to_model
+  from wmjax.tasks.pusht.simulator import PushTSimulator, reset_state
+
+  renderer = PushTSimulator(len(states), image_size, action_repeat)
+
+  def draw(state):
+    frames, _ = renderer.reset(np.stack([reset_state(s[:2], s[2:4], s[4]) for s in state]))
+    return frames
+
+  predicted = [states[:, 0], states[:, 1]]
+  frames = [draw(predicted[0]), draw(predicted[1])]
+  seen = ([seen_states(f[:, None])[:, 0] for f in frames] if perceived else list(predicted))
+  taken = [actions[:, 0]]
+  chunk, call = np.zeros((len(states), 0, 2)), 0
+  for _ in range(steps):
+    if chunk.shape[1] == 0:
+      chunk = np.asarray(policy(to_model(np.stack(frames[-2:], 1)), jax.random.fold_in(key, call)))
+      call += 1
+    taken.append(chunk[:, 0].astype(np.float64))
+    chunk = chunk[:, 1:]
+    prev, now = seen[-2], seen[-1]
+    inputs = features(prev[:, :2], now[:, :2], taken[-2], taken[-1], prev[:, 2:], now[:, 2:])
+    block = poses_from(predict(inputs), now[:, 2:])
+    agent = agent_from(predict_agent(inputs), now[:, 2:])
+    predicted.append(np.concatenate([agent, block], 1))
+    frames.append(draw(predicted[-1]))
+    seen.append(seen_states(frames[-1][:, None])[:, 0] if perceived else predicted[-1])
+  return np.stack(predicted, 1)
 
 
 def roll_out(predict, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
@@ -250,6 +316,36 @@ def policy_episodes(config_file: str, episodes: int, control_steps: int = 32,
   return out
 
 
+def policy_closed_loops(config_file: str, episodes: int, predict, predict_agent,
+                        truth: dict[str, tuple[np.ndarray, ...]], size: int,
+                        control_steps: int = 32, perceived: bool = False) -> dict[str, dict]:
+  """Per policy of :func:`policy_episodes`, the learner run closed loop (:func:`closed_loop`)
+  from its episodes' first two steps with the same policy noise, scored at the last step against
+  the simulator's episode ``truth[name]``: the T's IoU (:func:`rollout_end`) and the agent's
+  error (simulator units)."""
+  import jax
+
+  from wmjax.config import load_config
+  from wmjax.tasks.pusht import evaluate
+  from wmjax.tasks.pusht.dataset import PushTConfig
+
+  config = load_config(config_file)
+  params = PushTConfig.from_dict(config.data.pusht)
+  policies = evaluate.policies_from_specs(None, evaluate.policy_chunk(config))
+  out = {}
+  for index, (name, policy) in enumerate(policies.items()):
+    states, actions = truth[name][:2]
+    predicted = closed_loop(predict, predict_agent, policy, states[:, :2], actions,
+                            params.actions_for(control_steps),
+                            jax.random.fold_in(jax.random.key(0), index),
+                            image_size=params.image_size, action_repeat=params.action_repeat,
+                            perceived=perceived)
+    agent_error = np.linalg.norm(predicted[:, -1, :2] - states[:, -1, :2], axis=1)
+    out[name] = {**rollout_end(predicted[:, -1, 2:], states, size),
+                 "agent_error_end": _mean_se(agent_error, np.arange(len(states)))}
+  return out
+
+
 def read_split(data_dir: str, split: str, frames: bool = False) -> tuple[np.ndarray, ...]:
   """``states [E, T, 5]`` and ``actions [E, T, 2]`` of a Push-T dataset's split, and with
   ``frames`` the states its frames show (:func:`seen_states`)."""
@@ -278,6 +374,13 @@ def main(argv=None) -> int:
                       help="also roll out the episodes of `wmjax eval-policy`'s default policies "
                            "for this config (e.g. configs/pusht.py:latent, whose data --data "
                            "is): held-out start states, 32 control steps (policy_episodes)")
+  parser.add_argument("--closed_loop", action="store_true",
+                      help="with --policies: also run the learner closed loop in those policies' "
+                           "episodes, its states drawn by the simulator's renderer (closed_loop)")
+  parser.add_argument("--agent_budget", choices=("same", "long"), default="same",
+                      help="the closed loop's agent MLP trained at each budget's own steps and "
+                           "batch (same), or always at the long one's (long): how much of what "
+                           "the closed loop loses is the agent's")
   parser.add_argument("--policy_episodes", type=int, default=48, help="episodes per policy")
   parser.add_argument("--size", type=int, default=48, help="frame size the T is drawn at")
   parser.add_argument("--wm_steps", type=int, default=3000)
@@ -293,6 +396,8 @@ def main(argv=None) -> int:
   parser.add_argument("--seed", type=int, default=0)
   parser.add_argument("--out", required=True, help="JSON file for every number")
   args = parser.parse_args(argv)
+  if args.closed_loop and not args.policies:
+    parser.error("--closed_loop needs --policies CONFIG")
 
   def inputs_from(read):  # (true states, actions, the states the inputs are read from)
     return read if args.perceived else read + (read[0],)
@@ -308,11 +413,12 @@ def main(argv=None) -> int:
   if args.reference:
     splits["reference"] = episodes(args.reference, "test")
   if args.policies:
-    for name, read in policy_episodes(args.policies, args.policy_episodes,
-                                      frames=args.perceived).items():
+    truth_episodes = policy_episodes(args.policies, args.policy_episodes, frames=args.perceived)
+    for name, read in truth_episodes.items():
       splits[f"policy_{name}"] = inputs_from(read)
   test, truth = transitions(*splits["test"]), transitions(*splits["test"][:2])
   result = {"data": args.data, "reference": args.reference, "seed": args.seed,
+            "agent_budget": args.agent_budget,
             "inputs": "read from the frames" if args.perceived else "the simulator's state",
             "train_transitions": len(train["inputs"]),
             "validation_transitions": len(validation["inputs"]),
@@ -330,7 +436,16 @@ def main(argv=None) -> int:
                                     - validation["targets"]) ** 2))
     rate = min(losses, key=losses.get)
     predict = fitted[rate]
-    result[name] = {"steps": steps, "batch": batch, "learning_rate": rate,
+    loops = {}
+    if args.closed_loop:
+      agent_steps, agent_batch = ((args.steps, args.batch) if args.agent_budget == "long"
+                                  else (steps, batch))
+      predict_agent = fit(train["inputs"], agent_targets(*(v[:keep] for v in train_split[::2])),
+                          agent_steps, agent_batch, args.seed, learning_rate=rate)
+      loops = {"closed_loop": policy_closed_loops(args.policies, args.policy_episodes, predict,
+                                                  predict_agent, truth_episodes, args.size,
+                                                  perceived=args.perceived)}
+    result[name] = {**loops, "steps": steps, "batch": batch, "learning_rate": rate,
                     "validation_mse": {f"{r:g}": v for r, v in losses.items()},
                     "test": score(poses_from(predict(test["inputs"]), test["now"]), test, args.size),
                     **{f"{split}_rollout_end": rollout_end(roll_out(predict, seen, a)[:, -1],
@@ -340,6 +455,8 @@ def main(argv=None) -> int:
     print(name, "one step", json.dumps({g: v["block_iou"] for g, v in result[name]["test"].items()}))
     for key in (k for k in result[name] if k.endswith("rollout_end")):
       print(name, key, json.dumps(result[name][key]))
+    for policy, value in result[name].get("closed_loop", {}).items():
+      print(name, "closed loop", policy, json.dumps(value))
   with open(args.out, "w") as f:
     json.dump(result, f, indent=1)
   return 0
