@@ -230,6 +230,19 @@ def fit(inputs: np.ndarray, targets: np.ndarray, steps: int, batch: int, seed: i
   return lambda x: np.asarray(apply(params, jnp.asarray(x))) * std + mean
 
 
+def fit_selected(train: dict, validation: dict, steps: int, batch: int, seed: int,
+                 learning_rates: str = "1e-3,3e-3,1e-2"):
+  """:func:`fit` at each of the comma-separated ``learning_rates`` on ``train`` (as
+  :func:`transitions` writes it) -> ``(predict, learning rate, validation MSE per rate)`` of
+  the rate with the least MSE on ``validation``."""
+  losses, fitted = {}, {}
+  for rate in (float(r) for r in learning_rates.split(",")):
+    fitted[rate] = fit(train["inputs"], train["targets"], steps, batch, seed, learning_rate=rate)
+    losses[rate] = float(np.mean((fitted[rate](validation["inputs"]) - validation["targets"]) ** 2))
+  rate = min(losses, key=losses.get)
+  return fitted[rate], rate, losses
+
+
 def _mean_se(values: np.ndarray, episodes: np.ndarray) -> dict:
   """Mean and standard error over episodes of ``values [N]``, each episode's values averaged
   first."""
@@ -428,14 +441,8 @@ def main(argv=None) -> int:
                         for split, (s, _, _) in splits.items()}}}
   for name, steps, batch in (("world_model_budget", args.wm_steps, args.wm_batch),
                              ("long", args.steps, args.batch)):
-    losses, fitted = {}, {}
-    for rate in (float(r) for r in args.learning_rates.split(",")):
-      fitted[rate] = fit(train["inputs"], train["targets"], steps, batch, args.seed,
-                         learning_rate=rate)
-      losses[rate] = float(np.mean((fitted[rate](validation["inputs"])
-                                    - validation["targets"]) ** 2))
-    rate = min(losses, key=losses.get)
-    predict = fitted[rate]
+    predict, rate, losses = fit_selected(train, validation, steps, batch, args.seed,
+                                         args.learning_rates)
     loops = {}
     if args.closed_loop:
       agent_steps, agent_batch = ((args.steps, args.batch) if args.agent_budget == "long"

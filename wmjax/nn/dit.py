@@ -125,31 +125,32 @@ class LayerStack(nn.Module):
     return x, (jax.tree.map(lambda *a: jnp.stack(a), *kvs) if return_kv else None)
 
 
+def _abstract_like(leaf: jax.ShapeDtypeStruct, shape: tuple, spec) -> jax.ShapeDtypeStruct:
+  """``leaf`` with ``shape``; a named sharding's partition spec becomes ``spec(old spec)``."""
+  sharding = leaf.sharding
+  if isinstance(sharding, jax.sharding.NamedSharding):
+    sharding = jax.sharding.NamedSharding(sharding.mesh,
+                                          jax.sharding.PartitionSpec(*spec(tuple(sharding.spec))))
+  return jax.ShapeDtypeStruct(shape, leaf.dtype, sharding=sharding)
+
+
 def _stacked(leaves: list):
   """One leaf with a new leading axis over ``leaves`` (arrays, or ShapeDtypeStructs whose
   sharding gains an unsharded leading axis)."""
   first = leaves[0]
-  if not isinstance(first, jax.ShapeDtypeStruct):
-    return jnp.stack(leaves)
-  sharding = first.sharding
-  if isinstance(sharding, jax.sharding.NamedSharding):
-    sharding = jax.sharding.NamedSharding(sharding.mesh,
-                                          jax.sharding.PartitionSpec(None, *sharding.spec))
-  return jax.ShapeDtypeStruct((len(leaves),) + tuple(first.shape), first.dtype, sharding=sharding)
+  if isinstance(first, jax.ShapeDtypeStruct):
+    return _abstract_like(first, (len(leaves),) + tuple(first.shape), lambda s: (None,) + s)
+  return jnp.stack(leaves)
 
 
 def _layer(leaf, i: int):
   """Layer ``i`` of a stacked leaf (its leading axis dropped)."""
-  if not isinstance(leaf, jax.ShapeDtypeStruct):
-    return leaf[i]
-  sharding = leaf.sharding
-  if isinstance(sharding, jax.sharding.NamedSharding):
-    sharding = jax.sharding.NamedSharding(sharding.mesh,
-                                          jax.sharding.PartitionSpec(*sharding.spec[1:]))
-  return jax.ShapeDtypeStruct(tuple(leaf.shape[1:]), leaf.dtype, sharding=sharding)
+  if isinstance(leaf, jax.ShapeDtypeStruct):
+    return _abstract_like(leaf, tuple(leaf.shape[1:]), lambda s: s[1:])
+  return leaf[i]
 
 
-def _stack_layers(blocks: dict, scan: bool) -> dict:
+def _stack_layers(blocks: Mapping, scan: bool) -> dict:
   """A :class:`LayerStack`'s variables ``{'layers': stacked}`` or ``{'layer_i': ...}`` laid out
   as ``scan`` asks."""
   unrolled = sorted((k for k in blocks if k.startswith("layer_")), key=lambda k: int(k[6:]))
@@ -179,7 +180,7 @@ def relayout_layers(tree, scan: bool):
   laid out so already comes back with the same leaves."""
   if isinstance(tree, Mapping):
     out = {k: relayout_layers(v, scan) for k, v in tree.items()}
-    if isinstance(out.get("blocks"), dict):
+    if isinstance(out.get("blocks"), Mapping):
       out["blocks"] = _stack_layers(out["blocks"], scan)
     return out if isinstance(tree, dict) else type(tree)(out)
   children, treedef = jax.tree_util.tree_flatten(tree, is_leaf=lambda x: x is not tree)
