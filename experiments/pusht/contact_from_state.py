@@ -231,13 +231,14 @@ def fit(inputs: np.ndarray, targets: np.ndarray, steps: int, batch: int, seed: i
 
 
 def fit_selected(train: dict, validation: dict, steps: int, batch: int, seed: int,
-                 learning_rates: str = "1e-3,3e-3,1e-2"):
-  """:func:`fit` at each of the comma-separated ``learning_rates`` on ``train`` (as
-  :func:`transitions` writes it) -> ``(predict, learning rate, validation MSE per rate)`` of
-  the rate with the least MSE on ``validation``."""
+                 learning_rates: str = "1e-3,3e-3,1e-2", **network):
+  """:func:`fit` (``network``: its ``width`` and ``depth``) at each of the comma-separated
+  ``learning_rates`` on ``train`` (as :func:`transitions` writes it) -> ``(predict, learning
+  rate, validation MSE per rate)`` of the rate with the least MSE on ``validation``."""
   losses, fitted = {}, {}
   for rate in (float(r) for r in learning_rates.split(",")):
-    fitted[rate] = fit(train["inputs"], train["targets"], steps, batch, seed, learning_rate=rate)
+    fitted[rate] = fit(train["inputs"], train["targets"], steps, batch, seed, learning_rate=rate,
+                       **network)
     losses[rate] = float(np.mean((fitted[rate](validation["inputs"]) - validation["targets"]) ** 2))
   rate = min(losses, key=losses.get)
   return fitted[rate], rate, losses
@@ -403,6 +404,8 @@ def main(argv=None) -> int:
   parser.add_argument("--learning_rates", default="1e-3,3e-3,1e-2",
                       help="tried at each budget; the one with the least validation loss (the "
                            "last tenth of the training episodes, not trained on) is scored")
+  parser.add_argument("--width", type=int, default=256, help="the MLPs' hidden width")
+  parser.add_argument("--depth", type=int, default=3, help="the MLPs' hidden layers")
   parser.add_argument("--perceived", action="store_true",
                       help="the MLP's inputs read from the dataset's frames (seen_states) instead "
                            "of the simulator's state; the targets stay the true poses")
@@ -431,7 +434,7 @@ def main(argv=None) -> int:
       splits[f"policy_{name}"] = inputs_from(read)
   test, truth = transitions(*splits["test"]), transitions(*splits["test"][:2])
   result = {"data": args.data, "reference": args.reference, "seed": args.seed,
-            "agent_budget": args.agent_budget,
+            "agent_budget": args.agent_budget, "width": args.width, "depth": args.depth,
             "inputs": "read from the frames" if args.perceived else "the simulator's state",
             "train_transitions": len(train["inputs"]),
             "validation_transitions": len(validation["inputs"]),
@@ -441,14 +444,15 @@ def main(argv=None) -> int:
                         for split, (s, _, _) in splits.items()}}}
   for name, steps, batch in (("world_model_budget", args.wm_steps, args.wm_batch),
                              ("long", args.steps, args.batch)):
+    network = dict(width=args.width, depth=args.depth)
     predict, rate, losses = fit_selected(train, validation, steps, batch, args.seed,
-                                         args.learning_rates)
+                                         args.learning_rates, **network)
     loops = {}
     if args.closed_loop:
       agent_steps, agent_batch = ((args.steps, args.batch) if args.agent_budget == "long"
                                   else (steps, batch))
       predict_agent = fit(train["inputs"], agent_targets(*(v[:keep] for v in train_split[::2])),
-                          agent_steps, agent_batch, args.seed, learning_rate=rate)
+                          agent_steps, agent_batch, args.seed, learning_rate=rate, **network)
       loops = {"closed_loop": policy_closed_loops(args.policies, args.policy_episodes, predict,
                                                   predict_agent, truth_episodes, args.size,
                                                   perceived=args.perceived)}
