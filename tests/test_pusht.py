@@ -716,6 +716,67 @@ def test_contact_from_state_reads_the_state_back_from_frames():
   np.testing.assert_allclose(data["moved"], [0.0, np.hypot(20.0, 40.0), 0.0, 0.0], atol=1e-9)
 
 
+@pytest.mark.integration
+def test_contact_from_state_closed_loop_with_exact_predictions_replays_the_simulator():
+  """``contact_from_state.closed_loop``: with predictors that return the simulator's own next
+  poses, the states it draws show the policy what the simulator's frames show, so the policy
+  (noisy, with eval-policy's keys) takes the simulator's actions and the episode comes back."""
+  import jax
+
+  from wmjax.tasks.pusht.simulator import PushPolicy, random_initial_states, simulate_policy
+  module = pusht_experiment_script("contact_from_state")
+  policy, key = PushPolicy(noise=0.1), jax.random.key(3)
+  starts = random_initial_states(np.random.default_rng(5), 3)
+  truth = simulate_policy(policy, starts, 4, image_size=48, key=key, context=2, action_repeat=4)
+  states, actions = truth["state"].astype(np.float64), truth["actions"].astype(np.float64)
+  data = module.transitions(states, actions)
+  block, agent = (v.reshape(3, 4, -1) for v in (data["targets"],
+                                                 module.agent_targets(states)))
+  inputs = data["inputs"].reshape(3, 4, -1)
+  calls = {"block": 0, "agent": 0}
+
+  def oracle(name, targets):
+    def predict(x):
+      step = calls[name]
+      calls[name] += 1
+      np.testing.assert_allclose(x, inputs[:, step], atol=1e-3)  # the simulator's actions too
+      return targets[:, step]
+    return predict
+
+  replayed = module.closed_loop(oracle("block", block), oracle("agent", agent), policy,
+                                states[:, :2], actions, 4, key, image_size=48, action_repeat=4)
+  np.testing.assert_allclose(replayed, states, atol=1e-2)
+  assert calls == {"block": 4, "agent": 4}
+
+
+@pytest.mark.integration
+def test_plan_with_learner_imagines_each_candidate_from_the_state_it_reads(monkeypatch):
+  """``experiments/pusht/plan_with_learner.py``: a learner that keeps the T and the agent where
+  they are imagines, for every candidate, the frame the simulator shows now; one that moves the
+  T draws it elsewhere."""
+  from wmjax.tasks.pusht.simulator import PushTSimulator, random_initial_states
+  monkeypatch.syspath_prepend(str(ROOT / "experiments" / "pusht"))
+  module = pusht_experiment_script("plan_with_learner")
+  sim = PushTSimulator(2, 48, 4)
+  frames, actions, infos = sim.start(random_initial_states(np.random.default_rng(1), 2), 2)
+  frames, history = np.stack(frames, 1), np.stack([i["state"] for i in infos], 1)
+
+  def planner(block_move):
+    return module.LearnerLookahead(lambda x: np.tile(block_move, (len(x), 1)),
+                                   lambda x: x[:, 2:4],  # the agent's place now, in the T's frame
+                                   lambda window: history.astype(np.float64), None, None, 3, 1,
+                                   48, 4)
+
+  candidates = np.random.default_rng(2).uniform(100, 400, (2, 3, 1, 2))
+  still = planner(np.zeros(3)).imagine(frames, np.stack(actions, 1), candidates, None)
+  assert still.shape == (2, 3, 3, 48, 48, 3)
+  np.testing.assert_array_equal(still[:, :, :2], np.repeat(frames[:, None], 3, 1))
+  np.testing.assert_array_equal(still[:, :, 2], np.repeat(frames[:, None, 1], 3, 1))
+  moved = planner(np.array([5.0, 0.0, 0.0])).imagine(frames, np.stack(actions, 1), candidates,
+                                                     None)
+  assert (moved[:, :, 2] != frames[:, None, 1]).any(axis=(2, 3, 4)).all()
+
+
 @pytest.mark.unit
 def test_probe_split_by_motion_measures_the_t_move_into_the_first_generated_frame():
   """``experiments/pusht/probe.py --split_by_motion``: the T's move and turn from the last context frame into
