@@ -389,7 +389,8 @@ class _Run:
     if resumed is None:
       self.state, self.start = self.context.trainer.init(jax.random.key(self.config.seed)), 0
       if self.config.train.init_from:
-        params = jax.device_put(initial_weights(self.config),
+        # from host memory: every process holds the whole weights, and places its shards
+        params = jax.device_put(jax.tree.map(np.asarray, initial_weights(self.config)),
                                 self.context.trainer.state_shardings.params)
         # two buffers: the step donates the state, and one buffer cannot be donated twice
         self.state = self.state.replace(params=params,
