@@ -1,14 +1,15 @@
 """Resuming a run: the config a checkpoint was trained with against the one requested now.
 
-A resumed run continues the run its checkpoint came from, or stops. Changes that cannot alter
-what the run computes are accepted (:data:`SAFE_ON_RESUME`: how long it runs, how often it logs,
-evaluates and saves, how many data workers read, how the devices are laid out, how memory is
-saved: remat and gradient-accumulation micro-batches, which ``train.auto_fit`` may choose, and
-whether the layers are scanned, their parameters and optimiser state restacked to match). Any
-other change (the learning rate, the objective, the data, ...) stops the run with an error listing each
-differing key, unless the caller names it (``wmjax train --allow_config_change KEY[,KEY]``, a
-key or a whole section such as ``optim``). A change of the parameters' shapes (the model's width,
-depth, patch, ...) is always refused: the checkpoint cannot be loaded into another model.
+A resumed run continues the run its checkpoint came from, or stops. Changes that cannot alter what
+the run computes are accepted (:data:`SAFE_ON_RESUME`: how long it runs, how often it logs,
+evaluates and saves, where a new run would have started from, how many data workers read, how the
+devices are laid out, how memory is saved: remat and gradient-accumulation micro-batches, which
+``train.auto_fit`` may choose, and whether the layers are scanned, their parameters and optimiser
+state restacked to match). Any other change (the learning rate, the objective, the data, ...) stops
+the run with an error listing each differing key, unless the caller names it (``wmjax train
+--allow_config_change KEY[,KEY]``, a key or a whole section such as ``optim``). A change of the
+parameters' shapes (the model's width, depth, patch, ...) is always refused: the checkpoint cannot
+be loaded into another model.
 Accepted changes are printed and recorded in ``WORKDIR/config_changes.jsonl``.
 """
 
@@ -23,8 +24,8 @@ from wmjax.errors import RunError
 
 SAFE_ON_RESUME = ("train.num_steps", "train.log_every", "train.eval_every",
                   "train.checkpoint_every", "train.max_checkpoints", "train.eval_windows",
-                  "train.auto_fit", "train.memory_budget_gib", "model.remat", "model.scan_layers",
-                  "optim.grad_accum", "data.num_workers", "mesh")
+                  "train.auto_fit", "train.memory_budget_gib", "train.init_from", "model.remat",
+                  "model.scan_layers", "optim.grad_accum", "data.num_workers", "mesh")
 
 _MISSING = "<absent>"
 
