@@ -116,6 +116,23 @@ def agent_from(targets: np.ndarray, now: np.ndarray) -> np.ndarray:
   return now[:, :2] + _rotate(targets[:, None] * POSITION_SCALE, now[:, 2])[:, 0]
 
 
+def predicted_state(predict, predict_agent, prev: np.ndarray, now: np.ndarray,
+                    action_prev: np.ndarray, action_now: np.ndarray) -> np.ndarray:
+  """The learner's next state ``[N, 5]`` from the states ``prev`` and ``now [N, 5]`` and the two
+  actions ``[N, 2]``: the T's pose from ``predict``, the agent's position from
+  ``predict_agent``."""
+  inputs = features(prev[:, :2], now[:, :2], action_prev, action_now, prev[:, 2:], now[:, 2:])
+  return np.concatenate([agent_from(predict_agent(inputs), now[:, 2:]),
+                         poses_from(predict(inputs), now[:, 2:])], 1)
+
+
+def draw_states(renderer, states: np.ndarray) -> np.ndarray:
+  """``states [N, 5]`` drawn by the simulator's own renderer (a :class:`PushTSimulator` of ``N``
+  environments, reset to them) -> frames ``[N, S, S, 3]`` uint8."""
+  from wmjax.tasks.pusht.simulator import reset_state
+  return renderer.reset(np.stack([reset_state(s[:2], s[2:4], s[4]) for s in states]))[0]
+
+
 def closed_loop(predict, predict_agent, policy, states: np.ndarray, actions: np.ndarray,
                 steps: int, key, *, image_size: int, action_repeat: int,
                 perceived: bool = False) -> np.ndarray:
@@ -129,16 +146,11 @@ def closed_loop(predict, predict_agent, policy, states: np.ndarray, actions: np.
   import jax
 
   from wmjax.frames import to_model
-  from wmjax.tasks.pusht.simulator import PushTSimulator, reset_state
+  from wmjax.tasks.pusht.simulator import PushTSimulator
 
   renderer = PushTSimulator(len(states), image_size, action_repeat)
-
-  def draw(state):
-    frames, _ = renderer.reset(np.stack([reset_state(s[:2], s[2:4], s[4]) for s in state]))
-    return frames
-
   predicted = [states[:, 0], states[:, 1]]
-  frames = [draw(predicted[0]), draw(predicted[1])]
+  frames = [draw_states(renderer, predicted[0]), draw_states(renderer, predicted[1])]
   seen = ([seen_states(f[:, None])[:, 0] for f in frames] if perceived else list(predicted))
   taken = [actions[:, 0]]
   chunk, call = np.zeros((len(states), 0, 2)), 0
@@ -148,12 +160,9 @@ def closed_loop(predict, predict_agent, policy, states: np.ndarray, actions: np.
       call += 1
     taken.append(chunk[:, 0].astype(np.float64))
     chunk = chunk[:, 1:]
-    prev, now = seen[-2], seen[-1]
-    inputs = features(prev[:, :2], now[:, :2], taken[-2], taken[-1], prev[:, 2:], now[:, 2:])
-    block = poses_from(predict(inputs), now[:, 2:])
-    agent = agent_from(predict_agent(inputs), now[:, 2:])
-    predicted.append(np.concatenate([agent, block], 1))
-    frames.append(draw(predicted[-1]))
+    predicted.append(predicted_state(predict, predict_agent, seen[-2], seen[-1], taken[-2],
+                                     taken[-1]))
+    frames.append(draw_states(renderer, predicted[-1]))
     seen.append(seen_states(frames[-1][:, None])[:, 0] if perceived else predicted[-1])
   return np.stack(predicted, 1)
 
@@ -297,6 +306,18 @@ def seen_states(frames: np.ndarray) -> np.ndarray:
   return np.concatenate([agent_xy, origin, angle[:, None]], 1).reshape(frames.shape[:2] + (5,))
 
 
+def _profile_policies(config_file: str) -> tuple:
+  """``(config, its Push-T data parameters, eval-policy's default policies by name)`` of the
+  profile ``config_file``."""
+  from wmjax.config import load_config
+  from wmjax.tasks.pusht import evaluate
+  from wmjax.tasks.pusht.dataset import PushTConfig
+
+  config = load_config(config_file)
+  return (config, PushTConfig.from_dict(config.data.pusht),
+          evaluate.policies_from_specs(None, evaluate.policy_chunk(config)))
+
+
 def policy_episodes(config_file: str, episodes: int, control_steps: int = 32,
                     frames: bool = False) -> dict[str, tuple[np.ndarray, ...]]:
   """Per policy of ``wmjax eval-policy``'s default set, ``states [E, T, 5]`` and ``actions [E,
@@ -307,17 +328,13 @@ def policy_episodes(config_file: str, episodes: int, control_steps: int = 32,
   evaluation scores the T."""
   import jax
 
-  from wmjax.config import load_config
   from wmjax.tasks.pusht import evaluate
-  from wmjax.tasks.pusht.dataset import PushTConfig
   from wmjax.tasks.pusht.simulator import simulate_policy
 
-  config = load_config(config_file)
-  params = PushTConfig.from_dict(config.data.pusht)
+  config, params, policies = _profile_policies(config_file)
   states = evaluate.initial_states(config, episodes, "evaluate")
   if not evaluate.held_out(config, states):
     raise ValueError(f"the evaluation start states of {config_file} meet its training split")
-  policies = evaluate.policies_from_specs(None, evaluate.policy_chunk(config))
   out = {}
   for index, (name, policy) in enumerate(policies.items()):
     truth = simulate_policy(policy, states, params.actions_for(control_steps),
@@ -330,7 +347,7 @@ def policy_episodes(config_file: str, episodes: int, control_steps: int = 32,
   return out
 
 
-def policy_closed_loops(config_file: str, episodes: int, predict, predict_agent,
+def policy_closed_loops(config_file: str, predict, predict_agent,
                         truth: dict[str, tuple[np.ndarray, ...]], size: int,
                         control_steps: int = 32, perceived: bool = False) -> dict[str, dict]:
   """Per policy of :func:`policy_episodes`, the learner run closed loop (:func:`closed_loop`)
@@ -339,13 +356,7 @@ def policy_closed_loops(config_file: str, episodes: int, predict, predict_agent,
   error (simulator units)."""
   import jax
 
-  from wmjax.config import load_config
-  from wmjax.tasks.pusht import evaluate
-  from wmjax.tasks.pusht.dataset import PushTConfig
-
-  config = load_config(config_file)
-  params = PushTConfig.from_dict(config.data.pusht)
-  policies = evaluate.policies_from_specs(None, evaluate.policy_chunk(config))
+  _, params, policies = _profile_policies(config_file)
   out = {}
   for index, (name, policy) in enumerate(policies.items()):
     states, actions = truth[name][:2]
@@ -453,8 +464,8 @@ def main(argv=None) -> int:
                                   else (steps, batch))
       predict_agent = fit(train["inputs"], agent_targets(*(v[:keep] for v in train_split[::2])),
                           agent_steps, agent_batch, args.seed, learning_rate=rate, **network)
-      loops = {"closed_loop": policy_closed_loops(args.policies, args.policy_episodes, predict,
-                                                  predict_agent, truth_episodes, args.size,
+      loops = {"closed_loop": policy_closed_loops(args.policies, predict, predict_agent,
+                                                  truth_episodes, args.size,
                                                   perceived=args.perceived)}
     result[name] = {**loops, "steps": steps, "batch": batch, "learning_rate": rate,
                     "validation_mse": {f"{r:g}": v for r, v in losses.items()},

@@ -24,14 +24,14 @@ import json
 import jax
 import numpy as np
 
-from contact_from_state import (agent_from, agent_targets, features, fit_selected, poses_from,
+from contact_from_state import (agent_targets, draw_states, fit_selected, predicted_state,
                                 read_split, seen_states, transitions)
 from wmjax.config import load_config
 from wmjax.eval import planning, policy_eval
 from wmjax.eval.rewards import reward_from_spec
 from wmjax.tasks.pusht import evaluate
 from wmjax.tasks.pusht.dataset import PushTConfig
-from wmjax.tasks.pusht.simulator import PushTSimulator, reset_state
+from wmjax.tasks.pusht.simulator import PushTSimulator
 
 
 class LearnerLookahead(planning.Planner):
@@ -50,7 +50,7 @@ class LearnerLookahead(planning.Planner):
   def _draw(self, states: np.ndarray) -> np.ndarray:
     if self._renderer is None or len(self._renderer.envs) != len(states):
       self._renderer = PushTSimulator(len(states), self.image_size, self.action_repeat)
-    return self._renderer.reset(np.stack([reset_state(s[:2], s[2:4], s[4]) for s in states]))[0]
+    return draw_states(self._renderer, states)
 
   def imagine(self, frames, context_actions, candidates, rng):
     del rng
@@ -62,10 +62,8 @@ class LearnerLookahead(planning.Planner):
     drawn = []
     for t in range(n):
       taken.append(candidates[:, :, t].reshape(b * k, 2))
-      prev, now = seen[-2], seen[-1]
-      inputs = features(prev[:, :2], now[:, :2], taken[-2], taken[-1], prev[:, 2:], now[:, 2:])
-      seen.append(np.concatenate([agent_from(self.predict_agent(inputs), now[:, 2:]),
-                                  poses_from(self.predict(inputs), now[:, 2:])], 1))
+      seen.append(predicted_state(self.predict, self.predict_agent, seen[-2], seen[-1],
+                                  taken[-2], taken[-1]))
       drawn.append(self._draw(seen[-1])[:, None])
     video = np.concatenate([np.repeat(frames, k, axis=0)] + drawn, 1)
     return video.reshape((b, k) + video.shape[1:])
