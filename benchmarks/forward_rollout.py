@@ -7,7 +7,8 @@ writes JSON.
 Forward: one network call on a full window ``[B, c+h, H, W, C]`` (``config.frame_shape``).
 Rollout: ``--frames`` new frames from ``c`` context frames with the config's sampler, context and
 horizon (``sampling.num_steps=59`` costs what IRASim's PNDM-50 does: 59 network calls per block;
-``sampling.kv_cache`` is recorded); frames/s counts generated frames over all B rollouts. Times
+``sampling.kv_cache`` is recorded; a ``model.fp8_matmuls`` network runs with static float8
+scales, calibrated on random windows); frames/s counts generated frames over all B rollouts. Times
 are medians over ``--repeats`` runs after one compile run. ``--batch`` may be given several times:
 batches run in increasing order (so the allocator's peak after each is that batch's peak) and the
 result names the batch with the most frames/s. ``--profile DIR`` traces one more rollout of each
@@ -43,6 +44,8 @@ def benchmark(config_spec: str, overrides: list[str], batch: int, frames: int,
   x = jax.random.normal(jax.random.key(1), (batch, n) + shape)
   t = jnp.full((batch, n), 500.0)
   actions = jnp.zeros((batch, n - 1, net.action_dim))
+  if net.fp8_matmuls:  # static float8 scales, as a calibrated model runs (on noise: speed only)
+    params = wm.calibrate_float8(params, x, actions, jax.random.key(4), context=c)
   forward = jax.jit(net.apply)
   forward_s, forward_compile_s = median_seconds(lambda: forward(params, x, t, actions), repeats)
   flops = forward_flops(net, batch, n, shape[0], shape[1])

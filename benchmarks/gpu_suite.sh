@@ -10,6 +10,9 @@
 #                                    # jax.profiler trace of 3 steps)
 #   benchmarks/gpu_suite.sh rollout  # batch-8 rollouts: frames/s at 59 calls per block (PNDM-50's
 #                                    # cost) and at DDIM-10; WPE with and without the KV cache
+#   benchmarks/gpu_suite.sh rollout-fp8  # XL/2 rollouts at batch 8, unrolled layers, DDIM-10 and
+#                                        # 59 calls: bf16 matmuls, then float8 ones
+#                                        # (model.fp8_matmuls, calibrated scales), same call
 #   benchmarks/gpu_suite.sh all
 #
 # What the backward pass keeps, one knob at a time (parts that may be named together in one call):
@@ -77,6 +80,27 @@ rollout() {
   done
 }
 
+rollout_fp8() {
+  # float8 against bf16 matmuls, one knob, the baseline in the same call; each run under
+  # SETTING_TIMEOUT seconds (default 300). Predicted for an H100 (benchmarks/RESULTS.md,
+  # 2026-11-30): DDIM-10 blocks 868 ms in bf16, 609 ms with float8 matmuls.
+  local steps fp8
+  for steps in 10 59; do
+    for fp8 in False True; do
+      echo "== xl rollout steps=$steps fp8_matmuls=$fp8"
+      timeout "${SETTING_TIMEOUT:-300}" \
+        $py benchmarks/forward_rollout.py --config configs/irasim.py:XL "${fast[@]}" \
+          --config.model.scan_layers=False --config.model.fp8_matmuls=$fp8 \
+          --config.sampling.num_steps=$steps --batch 8 --frames 15 --repeats 2 \
+          --out "$out/forward_rollout-irasim-XL_2-unrolled-fp8$fp8-steps$steps-$platform.json" \
+        > "$traces-rollout-fp8$fp8-steps$steps.log" 2>&1 \
+        && grep -E '"(rollout_frames_per_s|forward_ms)"' \
+             "$out/forward_rollout-irasim-XL_2-unrolled-fp8$fp8-steps$steps-$platform.json" \
+        || { echo "rollout failed:"; tail -3 "$traces-rollout-fp8$fp8-steps$steps.log"; }
+    done
+  done
+}
+
 # Settings compared, one knob at a time, unrolled layers (a scan stacks each layer's saved
 # activations, copies an unrolled stack does not make): what remat keeps, from weight matmuls
 # (dots) to everything (none: 131 GiB for XL/2, an H200 only), and no remat over two micro-batches
@@ -122,8 +146,9 @@ for part in "$@"; do
     check) check ;;
     train) train ;;
     rollout) rollout ;;
+    rollout-fp8) rollout_fp8 ;;
     all) train; rollout ;;
-    *) echo "usage: $0 [check|train|rollout|all|settings-xl-train|settings-wpe-train ...]" >&2
+    *) echo "usage: $0 [check|train|rollout|rollout-fp8|all|settings-xl-train|settings-wpe-train ...]" >&2
        exit 2 ;;
   esac
 done

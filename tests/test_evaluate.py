@@ -235,6 +235,23 @@ def test_evaluate_command_writes_metrics_report_and_videos(workdir, tmp_path):
 
 @pytest.mark.integration
 @pytest.mark.slow
+def test_evaluate_with_float8_matmuls_calibrates_on_the_training_split(workdir, tmp_path):
+  """``--config.model.fp8_matmuls=True``: static float8 scales from training windows, and
+  rollouts close to the full-precision model's (the same seed: the same noise)."""
+  scores = {}
+  for name, extra in (("full", []), ("fp8", ["--config.model.fp8_matmuls=True"])):
+    out = tmp_path / name
+    assert cli.main(["evaluate", "--workdir", workdir, "--out", str(out), "--protocols",
+                     "short", "--videos", "0", *extra]) == 0
+    scores[name] = json.loads((out / "metrics.json").read_text())
+  assert "float8" not in scores["full"]
+  assert scores["fp8"]["float8"] == "static float8 scales from windows of the 'train' split"
+  full, fp8 = (scores[k]["short"]["model"]["mse"]["mean"] for k in ("full", "fp8"))
+  assert full != fp8 and fp8 == pytest.approx(full, rel=1e-3)
+
+
+@pytest.mark.integration
+@pytest.mark.slow
 def test_short_protocol_chains_blocks_beyond_the_window(workdir, tmp_path):
   """``rollout.short_actions`` longer than the 6-frame window: 1 frame + 7 actions, generated in
   chained blocks of 5, every one of the 7 frames scored."""

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from wmjax.train import hlo_cost
+from wmjax.train import fit, hlo_cost
 
 pytestmark = pytest.mark.unit
 
@@ -211,3 +211,38 @@ ENTRY %main (x: f32[4,3,32], w: f32[32,32]) -> f32[4,3,32] {
 """
   cost = hlo_cost.step_cost(module)
   assert cost["matmul_flops"] == 2 * (4 * 3 * 32) * 32
+
+
+def test_a_float8_gemm_counts_apart_and_is_priced_at_twice_the_matmul_rate():
+  """A cuBLAS float8 GEMM (what XLA makes of :mod:`wmjax.nn.float8`'s matmul on a Hopper card):
+  its FLOPs count among the matmuls' and apart, and the step's predicted time gives them half
+  the time of bf16 FLOPs."""
+  module = """HloModule m
+
+ENTRY %main (x: f8e4m3fn[64,32], w: f8e4m3fn[16,32], a: bf16[64,32], b: bf16[32,16]) -> bf16[64,16] {
+  %x = f8e4m3fn[64,32]{1,0} parameter(0)
+  %w = f8e4m3fn[16,32]{1,0} parameter(1)
+  %a = bf16[64,32]{1,0} parameter(2)
+  %b = bf16[32,16]{1,0} parameter(3)
+  %one = f32[] constant(1)
+  %fp8 = (bf16[64,16]{1,0}, s8[1024]{0}) custom-call(%x, %w, %one, %one),
+      custom_call_target="__cublas$lt$matmul$f8", metadata={op_name="jit(f)/mlp/fc1/dot_general"},
+      backend_config={"gemm_backend_config":{"dot_dimension_numbers":{
+      "lhs_contracting_dimensions":["1"],"rhs_contracting_dimensions":["1"]}}}
+  %bf16 = (bf16[64,16]{1,0}, s8[1024]{0}) custom-call(%a, %b),
+      custom_call_target="__cublas$lt$matmul", metadata={op_name="jit(f)/mlp/fc2/dot_general"},
+      backend_config={"gemm_backend_config":{"dot_dimension_numbers":{
+      "lhs_contracting_dimensions":["1"],"rhs_contracting_dimensions":["0"]}}}
+  %y = bf16[64,16]{1,0} get-tuple-element(%fp8), index=0
+  ROOT %z = bf16[64,16]{1,0} get-tuple-element(%bf16), index=0
+}
+""".replace("\n      ", " ")
+  flops = 2 * 64 * 16 * 32
+  rows = {row.cls: row for row in hlo_cost.analyze(module)}
+  assert rows["matmul_fp8"].flops == rows["matmul"].flops == flops
+  cost = hlo_cost.step_cost(module)
+  assert (cost["matmul_flops"], cost["fp8_matmul_flops"]) == (2 * flops, flops)
+  rates = (1e12, 1e9)
+  bf16_only = dict(cost, fp8_matmul_flops=0.0)
+  assert fit.predicted_step_s(cost, rates) == pytest.approx(
+      fit.predicted_step_s(bf16_only, rates) - 0.5 * flops / (fit.MATMUL_EFFICIENCY * 1e12))

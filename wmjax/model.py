@@ -22,6 +22,7 @@ from wmjax.diffusion import objectives
 from wmjax.diffusion.sampling import (DenoiseFn, SamplerConfig, classifier_free_guidance,
                                       context_inputs, window_denoiser)
 from wmjax.errors import CheckpointError, describe_error, ignore_closed_loop_callbacks
+from wmjax.nn import float8
 from wmjax.nn.dit import STDiT, relayout_layers
 from wmjax.parallel import abstract_with_shardings, local_data_mesh
 
@@ -98,6 +99,42 @@ class WorldModel:
                              *self._conditioning(actions, action_mask))
     return self._guide(out)
 
+  def calibrate_float8(self, params: Params, windows: jax.Array, actions: jax.Array,
+                       rng: jax.Array, context: int = 1) -> Params:
+    """``params`` with the scales that make a ``model.fp8_matmuls`` network's float8 matmuls
+    static (:mod:`wmjax.nn.float8`): every float8 layer's largest input magnitude while the
+    network denoises the clean ``windows [B, T, ...]`` (its own frames: latents for a latent
+    model) under their ``actions [B, T-1, A]``, the first ``context`` frames clean as the sampler
+    gives them, the others noised to each level the sampler visits. Windows from the training
+    data are what a model's rollouts resemble; a larger input in a rollout is clipped to
+    ``float8.HEADROOM`` times the calibrated maximum."""
+    if not self.network.fp8_matmuls:
+      raise ValueError("calibrate_float8 needs a network with model.fp8_matmuls=True")
+    b, n = windows.shape[:2]
+    if actions.shape[:2] != (b, n - 1) or not 0 < context < n:
+      raise ValueError(f"calibration wants windows [B, T, ...], actions [B, T-1, A] and "
+                       f"0 < context < T; got windows {tuple(windows.shape)}, actions "
+                       f"{tuple(actions.shape)}, context {context}")
+    context_in, context_levels = context_inputs(self.process, self.sampler, windows[:, :context])
+    conditioning = self._conditioning(actions, jnp.ones(actions.shape[:2], bool))
+    weights = {k: v for k, v in params.items() if k != float8.COLLECTION}
+
+    @jax.jit
+    def record(seen, level, noise):
+      new = windows[:, context:]
+      levels = jnp.full(new.shape[:2], level, context_levels.dtype)
+      x = jnp.concatenate([context_in, self.process.add_noise(new, levels, noise)], axis=1)
+      t = self.process.model_time(jnp.concatenate([context_levels, levels], axis=1))
+      _, updated = self.network.apply({**weights, **seen}, self._twice(x), self._twice(t),
+                                      *conditioning, mutable=[float8.COLLECTION])
+      return updated
+
+    seen = {}
+    for level, key in zip(self.process.sampling_levels(self.sampler.num_steps)[1:],
+                          jax.random.split(rng, self.sampler.num_steps)):
+      seen = record(seen, level, jax.random.normal(key, windows[:, context:].shape))
+    return {**weights, **seen}
+
   def new_frame_denoiser(self, params: Params, context: jax.Array, actions: jax.Array,
                          action_mask: jax.Array) -> DenoiseFn:
     """What the sampler calls at every step: ``(x [B, h, ...], levels [B, h]) -> out`` for the
@@ -149,8 +186,8 @@ def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
   """The parameters (``params='ema'`` or ``'raw'``), config and action statistics of a training
   checkpoint in ``workdir`` (the latest, or ``step``); nothing else of the train state is read.
   ``overrides`` (``dotted.key=value``) change inference settings such as ``sampling.num_steps``,
-  ``model.dtype`` or ``model.scan_layers`` (the saved layers are stacked or unstacked to match,
-  :func:`wmjax.nn.dit.relayout_layers`); ``param_dtype='bfloat16'`` halves the parameters'
+  ``model.dtype``, ``model.fp8_matmuls`` or ``model.scan_layers`` (the saved layers are stacked
+  or unstacked to match, :func:`wmjax.nn.dit.relayout_layers`); ``param_dtype='bfloat16'`` halves the parameters'
   memory for inference."""
   if params not in ("ema", "raw"):
     raise ValueError(f"params must be 'ema' or 'raw', got {params!r}")

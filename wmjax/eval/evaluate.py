@@ -15,6 +15,7 @@ import jax
 from wmjax import registry
 from wmjax.data.pipeline import member_configs
 from wmjax.data.sources import open_dataset
+from wmjax.eval.calibration import calibrated_float8
 from wmjax.eval import video as video_lib
 from wmjax.eval.frechet import FrechetDistances
 from wmjax.eval.protocols import evaluate_protocols
@@ -61,6 +62,11 @@ def evaluate_checkpoint(workdir: str, *, split: str | None = None, out: str | No
   task = registry.frame_metrics_of(episodes.spec.name)
   normalize = functools.partial(model.action_stats.normalize, mode=config.data.normalization,
                                 pad_to=config.model.action_dim)
+  calibration = None
+  if config.model.fp8_matmuls:  # static float8 scales, from data the model trained on
+    model = calibrated_float8(model, dataset.split(data.train_split), resolution, normalize,
+                              jax.random.key(seed + 1))
+    calibration = f"static float8 scales from windows of the {data.train_split!r} split"
 
   frechet = None
   if frame_features or clip_features:
@@ -76,7 +82,8 @@ def evaluate_checkpoint(workdir: str, *, split: str | None = None, out: str | No
   header = (f"# wmjax evaluate: {config.name} step {model.step} ({params} parameters), "
             f"split {split!r}, {data.dataset}")
   results = dict(results, workdir=os.path.abspath(workdir), step=model.step, split=split,
-                 params=params, sampler=config.sampling.to_dict())
+                 params=params, sampler=config.sampling.to_dict(),
+                 **({"float8": calibration} if calibration else {}))
   with open(os.path.join(out, "metrics.json"), "w") as f:
     json.dump(to_json_safe(results), f, indent=2)
   with open(os.path.join(out, "report.md"), "w") as f:

@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmjax.nn import attention, layers, text_actions
+from wmjax.nn import attention, float8, layers, text_actions
 from wmjax.nn.layers import logical
 
 COND_MODES = ("frame", "video", "per_frame")
@@ -95,6 +95,7 @@ class LayerStack(nn.Module):
   remat: str
   temporal_first: bool = False
   spatial_rope: bool = False
+  fp8: bool = False
 
   @nn.compact
   def __call__(self, x, spatial_cond, temporal_cond, patch_positions, cache=None,
@@ -106,13 +107,14 @@ class LayerStack(nn.Module):
     kwargs = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio, causal=self.causal,
                   rope=self.rope, attention_impl=self.attention_impl, dtype=self.dtype,
                   return_kv=return_kv, temporal_first=self.temporal_first,
-                  spatial_rope=self.spatial_rope)
+                  spatial_rope=self.spatial_rope, fp8=self.fp8)
     inputs = (x, spatial_cond, temporal_cond, patch_positions)
     if self.scan:
       # the scanned layers take frame_pos per layer: as given for the first, zeros for the others
       layer_pos = None if frame_pos is None else (
           jnp.zeros((self.num_layers,) + frame_pos.shape, frame_pos.dtype).at[0].set(frame_pos))
-      stack = nn.scan(layer_cls, variable_axes={"params": 0}, split_rngs={"params": True},
+      stack = nn.scan(layer_cls, variable_axes={"params": 0, float8.COLLECTION: 0},
+                      split_rngs={"params": True},
                       in_axes=(nn.broadcast,) * 3 + (0, 0), length=self.num_layers,
                       metadata_params={nn.PARTITION_NAME: "layers"})
       return stack(**kwargs, name="layers")(*inputs, cache, layer_pos)
@@ -236,6 +238,9 @@ class STDiT(nn.Module):
   dtype: str = "float32"  # compute dtype; parameters are always float32
   scan_layers: bool = True
   remat: str = "none"  # a key of REMAT_POLICIES
+  # the linear layers of the blocks (attention projections, MLPs) in float8 e4m3, for inference:
+  # twice the matmul peak on Ada / Hopper / Blackwell GPUs (wmjax.nn.float8); training refuses it
+  fp8_matmuls: bool = False
 
   def setup(self):
     if self.cond not in COND_MODES:
@@ -288,7 +293,7 @@ class STDiT(nn.Module):
     self.blocks = LayerStack(self.depth // 2, self.num_heads, self.mlp_ratio, self.causal_temporal,
                              "rope" in self.temporal_pos, self.attention_impl, dtype,
                              self.scan_layers, self.remat, self.temporal_first,
-                             "rope" in self.spatial_pos)
+                             "rope" in self.spatial_pos, self.fp8_matmuls)
     self.final_layer = layers.FinalLayer(self.patch_size ** 2 * self.in_channels, dtype=dtype)
 
   @property

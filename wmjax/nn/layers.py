@@ -31,6 +31,7 @@ from einops import rearrange
 from jax.ad_checkpoint import checkpoint_name
 
 from wmjax.nn.attention import attend
+from wmjax.nn.float8 import Float8DotGeneral
 from wmjax.parallel import LOGICAL_RULES, MESH_AXES
 
 Dtype = Any
@@ -244,21 +245,31 @@ def unpatchify(x: jax.Array, grid_h: int, grid_w: int, p: int) -> jax.Array:
 # --------------------------------------------------------------------------- transformer
 
 
+def _float8(name: str, fp8: bool) -> Float8DotGeneral | None:
+  """The float8 matmul of the layer ``name`` (its calibrated scale lives under
+  ``{name}_float8``), or None: the layer's own matmul."""
+  return Float8DotGeneral(name=f"{name}_float8") if fp8 else None
+
+
 class Mlp(nn.Module):
-  """``Linear -> GELU(tanh) -> Linear``; ``[..., in] -> [..., features]``."""
+  """``Linear -> GELU(tanh) -> Linear``; ``[..., in] -> [..., features]``. ``fp8``: both
+  matmuls in float8 (:mod:`wmjax.nn.float8`)."""
 
   features: int
   hidden: int
   in_axis: str = "embed"
   dtype: Dtype = jnp.float32
+  fp8: bool = False
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
     x = nn.Dense(self.hidden, dtype=self.dtype, kernel_init=logical(_xavier, self.in_axis, "mlp"),
-                 bias_init=logical(_zeros, "mlp"), name="fc1")(x)
+                 bias_init=logical(_zeros, "mlp"), dot_general=_float8("fc1", self.fp8),
+                 name="fc1")(x)
     x = checkpoint_name(nn.gelu(x, approximate=True), "mlp_activation")
     return nn.Dense(self.features, dtype=self.dtype, kernel_init=logical(_xavier, "mlp", "embed"),
-                    bias_init=logical(_zeros, "embed"), name="fc2")(x)
+                    bias_init=logical(_zeros, "embed"), dot_general=_float8("fc2", self.fp8),
+                    name="fc2")(x)
 
 
 class Attention(nn.Module):
@@ -273,7 +284,8 @@ class Attention(nn.Module):
   ``cache = (k, v)``, each ``[N, Lc, ..., H, d]``, holds the keys and values of ``Lc`` earlier
   positions: ``x`` is then at positions ``Lc .. Lc+L-1`` and attends to the cache as well. Returns
   the output ``[N, L, ..., D]`` and ``x``'s own keys and values (``[N, L, ..., H, d]`` each, RoPE
-  applied), which a later call can take as its cache.
+  applied), which a later call can take as its cache. ``fp8``: the projections in and out in
+  float8 (:mod:`wmjax.nn.float8`); the attention itself keeps the compute dtype.
   """
 
   num_heads: int
@@ -281,6 +293,7 @@ class Attention(nn.Module):
   rope: bool = False
   implementation: str | None = "xla"
   dtype: Dtype = jnp.float32
+  fp8: bool = False
 
   @nn.compact
   def __call__(self, x: jax.Array, cache: tuple[jax.Array, jax.Array] | None = None,
@@ -288,11 +301,14 @@ class Attention(nn.Module):
                ) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
     d = x.shape[-1]
     head_dim = d // self.num_heads
+    # one float8 scaling of x for the three projections: XLA then quantizes x once
+    qkv_dot = _float8("qkv", self.fp8)
 
     def project(name):
       return nn.DenseGeneral((self.num_heads, head_dim), dtype=self.dtype,
                              kernel_init=logical(_xavier, "embed", "heads", "kv"),
-                             bias_init=logical(_zeros, "heads", "kv"), name=name)(x)
+                             bias_init=logical(_zeros, "heads", "kv"), dot_general=qkv_dot,
+                             name=name)(x)
 
     q, k, v = project("query"), project("key"), project("value")  # [N, L, ..., H, d]
     offset = 0 if cache is None else cache[0].shape[1]
@@ -307,7 +323,8 @@ class Attention(nn.Module):
                           "attention")
     out = nn.DenseGeneral(d, axis=(-2, -1), dtype=self.dtype,
                           kernel_init=logical(_xavier, "heads", "kv", "embed"),
-                          bias_init=logical(_zeros, "embed"), name="out")(out)
+                          bias_init=logical(_zeros, "embed"),
+                          dot_general=_float8("out", self.fp8), name="out")(out)
     return out, (k, v)
 
 
@@ -349,7 +366,8 @@ class STBlock(nn.Module):
   With ``rope``, ``positions`` are the RoPE positions of the attended axis (for the spatial axis
   the ``[P, 2]`` (row, column) of each patch: relative 2-D positions; for the temporal axis the
   frame index by default). Returns ``x' [B, T, P, D]`` and, for the temporal axis, the keys and values of ``x``'s frames
-  (``[B*P, T, H, d]`` each; None for the spatial axis).
+  (``[B*P, T, H, d]`` each; None for the spatial axis). ``fp8``: the attention's projections and
+  the MLP in float8 (:mod:`wmjax.nn.float8`); the adaLN modulation keeps the compute dtype.
   """
 
   axis: str
@@ -359,6 +377,7 @@ class STBlock(nn.Module):
   rope: bool = False
   attention_impl: str | None = "xla"
   dtype: Dtype = jnp.float32
+  fp8: bool = False
 
   @nn.compact
   def __call__(self, x: jax.Array, cond: jax.Array, cache=None, positions=None):
@@ -367,7 +386,8 @@ class STBlock(nn.Module):
     shift_a, scale_a, gate_a, shift_m, scale_m, gate_m = (
         m[:, :, None, :] for m in Modulation(6, dtype=self.dtype, name="modulation")(cond))
     attention = Attention(self.num_heads, causal=self.causal, rope=self.rope,
-                          implementation=self.attention_impl, dtype=self.dtype, name="attn")
+                          implementation=self.attention_impl, dtype=self.dtype, fp8=self.fp8,
+                          name="attn")
     h = checkpoint_name(modulate(layer_norm(x), shift_a, scale_a), "normed")
     if self.axis == "spatial":
       if cache is not None:
@@ -385,7 +405,7 @@ class STBlock(nn.Module):
       raise ValueError(f"axis must be 'spatial' or 'temporal', got {self.axis!r}")
     x = x + gate_a * h
     h = checkpoint_name(modulate(layer_norm(x), shift_m, scale_m), "normed")
-    h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, name="mlp")(h)
+    h = Mlp(d, self.mlp_ratio * d, dtype=self.dtype, fp8=self.fp8, name="mlp")(h)
     return constrain(x + gate_m * h), kv
 
 
@@ -399,7 +419,7 @@ class STLayer(nn.Module):
   temporal ``cache`` (see :class:`STBlock`), optional ``frame_pos [1, T, 1, D]`` added to the
   tokens right before the temporal block -> ``(x', kv)`` with ``x' [B, T, P, D]`` and ``kv`` the
   temporal keys and values of ``x``'s frames when ``return_kv`` (else None); the ``(carry,
-  output)`` pair is what ``nn.scan`` expects.
+  output)`` pair is what ``nn.scan`` expects. ``fp8``: see :class:`STBlock`.
   """
 
   num_heads: int
@@ -408,6 +428,7 @@ class STLayer(nn.Module):
   rope: bool = False
   attention_impl: str | None = "xla"
   dtype: Dtype = jnp.float32
+  fp8: bool = False
   return_kv: bool = False
   temporal_first: bool = False
   spatial_rope: bool = False
@@ -415,7 +436,7 @@ class STLayer(nn.Module):
   @nn.compact
   def __call__(self, x, spatial_cond, temporal_cond, patch_positions, cache=None, frame_pos=None):
     common = dict(num_heads=self.num_heads, mlp_ratio=self.mlp_ratio,
-                  attention_impl=self.attention_impl, dtype=self.dtype)
+                  attention_impl=self.attention_impl, dtype=self.dtype, fp8=self.fp8)
     spatial = STBlock("spatial", rope=self.spatial_rope, **common, name="spatial")
     temporal_block = STBlock("temporal", causal=self.causal, rope=self.rope, **common,
                              name="temporal")

@@ -32,8 +32,8 @@ def compile_rollout(config: ml_collections.ConfigDict, target: Target, batch: in
                     budget_bytes: int | None = None) -> dict:
   """One rollout block (``rollout.context`` frames in, ``rollout.horizon`` out, with the config's
   sampler) jitted and compiled for the first device of ``target`` at ``batch`` rollouts (default
-  8) -> its report, as :func:`compile_train`'s (memory, fits, FLOPs, predicted time, compile
-  time)."""
+  8; a ``model.fp8_matmuls`` network with calibrated float8 scales) -> its report, as
+  :func:`compile_train`'s (memory, fits, FLOPs, predicted time, compile time)."""
   world_model = WorldModel.from_config(config)
   net = world_model.network
   batch = batch or 8
@@ -43,6 +43,10 @@ def compile_rollout(config: ml_collections.ConfigDict, target: Target, batch: in
   start = time.perf_counter()
   with attention.platform_override(target.platform):
     params = jax.eval_shape(lambda: world_model.init(jax.random.key(0), shape, frames=c + h))
+    if net.fp8_matmuls:  # as a calibrated model runs: with static float8 scales
+      params = jax.eval_shape(lambda p: world_model.calibrate_float8(
+          p, jnp.zeros((1, c + h) + shape), jnp.zeros((1, c + h - 1, net.action_dim)),
+          jax.random.key(0), context=c), params)
     params = jax.tree.map(lambda p: jax.ShapeDtypeStruct(p.shape, p.dtype, sharding=device),
                           params)
     run = jax.jit(lambda p, context, actions, key: rollout(

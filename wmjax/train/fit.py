@@ -54,6 +54,10 @@ _DEVICE_KINDS = (("h200", "h200"), ("h100", "h100"), ("a100", "a100"), ("v6", "v
 # benchmarks/RESULTS.md, 2026-11-30). Not calibrated on other cards or on TPUs.
 MATMUL_EFFICIENCY = 0.54
 BANDWIDTH_EFFICIENCY = 0.80
+# cuBLAS float8 GEMMs run at twice the dense bf16 peak on every card XLA emits them for (Ada,
+# Hopper, Blackwell datasheets); priced at the same MATMUL_EFFICIENCY of that peak, which no card
+# measurement has checked yet.
+FLOAT8_SPEEDUP = 2.0
 
 
 def _gpu_target(description: str, cores: int, fpus: int, capability: tuple[int, int],
@@ -242,10 +246,12 @@ def device_rates(target: Target) -> tuple[float, float] | None:
 def predicted_step_s(cost: dict, rates: tuple[float, float]) -> float:
   """Seconds one execution of a compiled step takes on a device of ``rates`` (FLOP/s, bytes/s),
   by its ``cost`` (:func:`wmjax.train.hlo_cost.step_cost`): its matmul FLOPs at
-  :data:`MATMUL_EFFICIENCY` of the peak plus the bytes its other kernels move at
-  :data:`BANDWIDTH_EFFICIENCY` of the bandwidth."""
+  :data:`MATMUL_EFFICIENCY` of the peak (:data:`FLOAT8_SPEEDUP` times it for float8 GEMMs) plus
+  the bytes its other kernels move at :data:`BANDWIDTH_EFFICIENCY` of the bandwidth."""
   flops, bandwidth = rates
-  return (cost["matmul_flops"] / (MATMUL_EFFICIENCY * flops)
+  fp8 = cost.get("fp8_matmul_flops", 0.0)
+  matmul_flops = cost["matmul_flops"] - fp8 + fp8 / FLOAT8_SPEEDUP
+  return (matmul_flops / (MATMUL_EFFICIENCY * flops)
           + cost["other_bytes"] / (BANDWIDTH_EFFICIENCY * bandwidth))
 
 

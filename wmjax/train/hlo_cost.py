@@ -14,6 +14,8 @@ fits:
                ``dot``, a ``convolution`` (as TPUs compile matmuls) or a fusion with either
                inside (XLA's Triton GEMM fusions, ``__triton_gemm``); with its FLOPs, 2·M·N·K
                from the dot's dimensions
+``matmul_fp8`` a cuBLAS float8 GEMM (``__cublas$lt$matmul$f8``, :mod:`wmjax.nn.float8`); with its
+               FLOPs, as a matmul's
 ``attention``  a cuDNN attention call (``__cudnn$fmha...``); with its FLOPs, from its score shape
 ``pallas``     a Pallas kernel lowered through Triton (``__gpu$xla.gpu.triton``), listed under its
                ``name=``
@@ -67,7 +69,7 @@ _PALLAS_NAME = re.compile(r'\bname = "([\w.\-]+)"')
 _DIM_LABELS = re.compile(r"\bdim_labels=\w+_(\w+)->\w+")
 _SCORES = re.compile(r'"intermediate_tensor_shape":\s*\{[^{}]*?"dimensions":\s*\[([^\]]*)\]')
 _CONTRACTING = re.compile(r'(?:lhs_contracting_dims=\{|"lhs_contracting_dimensions":\[)([^}\]]*)')
-CLASSES = ("matmul", "attention", "pallas", "memcpy", "slice", "transpose", "transposing", "copy",
+CLASSES = ("matmul", "matmul_fp8", "attention", "pallas", "memcpy", "slice", "transpose", "transposing", "copy",
            "reduction", "elementwise", "collective", "other")
 # Ops a fusion root is looked through to find what the kernel does (and copies keeping the layout).
 _THROUGH = ("bitcast", "convert", "tuple", "get-tuple-element")
@@ -81,8 +83,10 @@ _NO_KERNEL = ("parameter", "constant", "get-tuple-element", "tuple", "bitcast", 
 _COLLECTIVE = ("all-reduce", "all-reduce-start", "all-gather", "all-gather-start", "reduce-scatter",
                "all-to-all", "ragged-all-to-all", "collective-permute", "collective-permute-start",
                "collective-broadcast", "send", "recv")
-# Custom-call targets by prefix: (prefix, class).
-_TARGETS = (("__cublas$", "matmul"), ("__cudnn$conv", "matmul"), ("__cudnn$fmha", "attention"),
+_MATMULS = ("matmul", "matmul_fp8")
+# Custom-call targets by prefix, first match: (prefix, class).
+_TARGETS = (("__cublas$lt$matmul$f8", "matmul_fp8"), ("__cublas$", "matmul"),
+            ("__cudnn$conv", "matmul"), ("__cudnn$fmha", "attention"),
             ("__gpu$xla.gpu.triton", "pallas"))
 
 
@@ -312,7 +316,7 @@ def classify(inst: Instruction, computations: dict[str, list[Instruction]],
       return Kernel(cls, written, read, name=name.group(1) if name else None)
     if cls == "attention":
       return Kernel(cls, written, read, _attention_flops(inst, shapes))
-    return Kernel(cls, written, read, _flops(inst, shapes) if cls == "matmul" else 0)
+    return Kernel(cls, written, read, _flops(inst, shapes) if cls in _MATMULS else 0)
   if inst.opcode == "transpose":
     return Kernel("transpose", written, read)
   if inst.opcode == "copy":
@@ -334,7 +338,7 @@ def _classify_fusion(inst: Instruction, computations: dict[str, list[Instruction
   fused_shapes = {i.name: i.shape for i in body}
   read = _fusion_reads(body)
   matmuls = [i for i in body if i.opcode in ("dot", "convolution")
-             or (i.opcode == "custom-call" and _target_class(i) == "matmul")]
+             or (i.opcode == "custom-call" and _target_class(i) in _MATMULS)]
   if matmuls:
     return Kernel("matmul", written, read, sum(_flops(i, fused_shapes) for i in matmuls))
   heroes = _heroes(body) if body else []
@@ -426,11 +430,12 @@ def _short_op(op_name: str) -> str:
 
 def summary(rows: list[Row]) -> dict[str, dict[str, float]]:
   """``{class: {'kernels': executions per run, 'gb': GB moved per run, 'tflop': TFLOPs per run}}``
-  for every class, their ``total`` and the total ``outside matmul``."""
+  for every class, their ``total`` and the total ``outside matmul`` (outside both matmul
+  classes)."""
   out = {cls: {"kernels": 0, "gb": 0.0, "tflop": 0.0}
          for cls in CLASSES + ("total", "outside matmul")}
   for row in rows:
-    for cls in (row.cls, "total") + (() if row.cls == "matmul" else ("outside matmul",)):
+    for cls in (row.cls, "total") + (() if row.cls in _MATMULS else ("outside matmul",)):
       out[cls]["kernels"] += row.count
       out[cls]["gb"] += row.moved / 1e9
       out[cls]["tflop"] += row.flops / 1e12
@@ -438,11 +443,13 @@ def summary(rows: list[Row]) -> dict[str, dict[str, float]]:
 
 
 def step_cost(text: str) -> dict[str, float]:
-  """``{'matmul_flops', 'matmul_bytes', 'other_bytes', 'kernels'}`` per execution of the optimized
-  HLO ``text``: the FLOPs and bytes of its matmuls, the bytes every other kernel moves, and the
-  kernels it launches."""
+  """``{'matmul_flops', 'fp8_matmul_flops', 'matmul_bytes', 'other_bytes', 'kernels'}`` per
+  execution of the optimized HLO ``text``: the FLOPs and bytes of its matmuls (float8 GEMMs
+  included; their FLOPs also apart), the bytes every other kernel moves, and the kernels it
+  launches."""
   totals = summary(analyze(text))
-  return {"matmul_flops": totals["matmul"]["tflop"] * 1e12,
-          "matmul_bytes": totals["matmul"]["gb"] * 1e9,
+  return {"matmul_flops": sum(totals[cls]["tflop"] for cls in _MATMULS) * 1e12,
+          "fp8_matmul_flops": totals["matmul_fp8"]["tflop"] * 1e12,
+          "matmul_bytes": sum(totals[cls]["gb"] for cls in _MATMULS) * 1e9,
           "other_bytes": totals["outside matmul"]["gb"] * 1e9,
           "kernels": totals["total"]["kernels"]}

@@ -234,7 +234,7 @@ def _resume(checkpoints: Checkpointer, trainer: ShardedTrainer, config: ml_colle
 
 # model keys that change how the network computes or trains, not the function its weights are
 _HOW_IT_COMPUTES = ("model.remat", "model.scan_layers", "model.dtype", "model.attention_impl",
-                    "model.action_dropout")
+                    "model.action_dropout", "model.fp8_matmuls")
 
 
 def initial_weights(config: ml_collections.ConfigDict) -> Any:

@@ -21,6 +21,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from wmjax import parallel
+from wmjax.config import ConfigError
 from wmjax.diffusion import LevelSampling, masked_loss_sum, training_noise
 from wmjax.model import WorldModel
 from wmjax.nn import attention
@@ -181,6 +182,12 @@ class ShardedTrainer:
 
   def __init__(self, world_model: WorldModel, config: ml_collections.ConfigDict, mesh: Mesh,
                frame_shape: tuple[int, int, int], frames: int, platform: str | None = None):
+    if world_model.network.fp8_matmuls:
+      raise ConfigError("model.fp8_matmuls=True is for inference (rollouts, evaluation): wmjax "
+                        "does not train through float8 rounding (that needs delayed scaling and "
+                        "float8 gradients), so a model trains with "
+                        "model.fp8_matmuls=False and loads with load_model(..., overrides="
+                        "['model.fp8_matmuls=True']) or --config.model.fp8_matmuls=True")
     self.world_model, self.mesh, self.platform = world_model, mesh, platform
     self.frame_shape, self.frames = tuple(frame_shape), frames  # of the batches it trains on
     self.micro_batches = config.optim.grad_accum
