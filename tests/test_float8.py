@@ -97,9 +97,6 @@ def test_calibrated_float8_network_follows_the_full_precision_one():
   dynamic = denoise(params, x, levels, actions, mask)
   assert 1e-4 < relative(static) < 0.03 and 1e-4 < relative(dynamic) < 0.03
   assert not np.array_equal(np.asarray(static), np.asarray(dynamic))  # two scalings
-  # static scales are constants: a rollout's output does not depend on the rest of its batch
-  alone = denoise(calibrated, x[:1], levels[:1], actions[:1], mask[:1])
-  np.testing.assert_allclose(np.asarray(alone), np.asarray(static[:1]), rtol=1e-5, atol=1e-5)
   # inputs far beyond the calibration are clipped, not overflowed to NaN
   assert np.isfinite(np.asarray(denoise(calibrated, 1e3 * x, levels, actions, mask))).all()
 

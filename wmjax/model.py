@@ -187,8 +187,8 @@ def load_model(workdir: str, *, step: int | None = None, params: str = "ema",
   checkpoint in ``workdir`` (the latest, or ``step``); nothing else of the train state is read.
   ``overrides`` (``dotted.key=value``) change inference settings such as ``sampling.num_steps``,
   ``model.dtype``, ``model.fp8_matmuls`` or ``model.scan_layers`` (the saved layers are stacked
-  or unstacked to match, :func:`wmjax.nn.dit.relayout_layers`); ``param_dtype='bfloat16'`` halves the parameters'
-  memory for inference."""
+  or unstacked to match, :func:`wmjax.nn.dit.relayout_layers`); ``param_dtype='bfloat16'``
+  halves the parameters' memory for inference."""
   if params not in ("ema", "raw"):
     raise ValueError(f"params must be 'ema' or 'raw', got {params!r}")
   directory = os.path.join(os.path.abspath(os.path.expanduser(workdir)), "checkpoints")

@@ -1,4 +1,4 @@
-"""Matmuls in float8 (e4m3) for inference: :class:`Float8DotGeneral`, the ``dot_general_cls`` that
+"""Matmuls in float8 (e4m3) for inference: :class:`Float8DotGeneral`, the ``dot_general`` that
 ``STDiT(fp8_matmuls=True)`` gives every linear layer of its blocks (the attention's projections
 and the MLP).
 
@@ -15,8 +15,8 @@ activations) gets one of two scalings:
 
 * **dynamic** (no calibration): one scale per row (token), from the row's own largest magnitude,
   measured as the matmul runs. A token's result does not depend on the other tokens or rollouts
-  of the batch, but every quantized input is read once more for its maxima, which costs about a
-  third of what float8 saves (benchmarks/RESULTS.md).
+  of the batch, but every quantized input is read once more for its maxima, which costs about
+  half of what float8 saves (benchmarks/RESULTS.md, "Rollouts in float8").
 * **static** (calibrated): one fixed scale per layer, :data:`HEADROOM` times the largest magnitude
   its input reached on calibration windows (:meth:`wmjax.model.WorldModel.calibrate_float8`);
   larger inputs are clipped to it. The scaling then fuses into the kernel that makes the input.
