@@ -24,10 +24,11 @@ def calibrated_float8(model: LoadedModel, episodes: ArrayRecordEpisodes, resolut
   an evaluation scores), encoded by the model's codec, their actions through ``normalize``; the
   rollout's ``context`` frames of each window clean, the rest noised at the sampler's levels."""
   length = model.world_model.network.num_frames
-  picked = Trajectories.stack(windows_of(episodes, length, resolution, windows), normalize)
-  if (picked.lengths < length).any():
-    raise ValueError(f"float8 calibration needs windows of {length} frames; the calibration "
-                     f"split's episodes are shorter")
+  found = windows_of(episodes, length, resolution, windows)
+  if not found:
+    raise ValueError(f"float8 calibration needs windows of {length} frames (model.num_frames); "
+                     f"no episode of the calibration split is that long")
+  picked = Trajectories.stack(found, normalize)
   encode_key, noise_key = jax.random.split(rng)
   frames = model.codec.encode(to_model(picked.frames), encode_key)
   params = model.world_model.calibrate_float8(model.params, frames, picked.actions, noise_key,
