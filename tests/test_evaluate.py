@@ -19,6 +19,7 @@ from wmjax.codecs import PixelCodec
 from wmjax.config import load_config
 from wmjax.data.stats import ActionStats
 from wmjax.eval import inputs, protocols, video
+from wmjax.eval.calibration import with_float8_scales
 from wmjax.eval.frechet import FrechetDistances
 from wmjax.eval.rollouts import run_rollouts
 from wmjax.eval.trajectories import Trajectories
@@ -248,6 +249,11 @@ def test_evaluate_with_float8_matmuls_calibrates_on_the_training_split(workdir, 
   assert scores["fp8"]["float8"] == "static float8 scales from windows of the 'train' split"
   full, fp8 = (scores[k]["short"]["model"]["mse"]["mean"] for k in ("full", "fp8"))
   assert full != fp8 and fp8 == pytest.approx(full, rel=1e-3)
+  # a model whose training data is not on this machine keeps per-token scales, and says why
+  model = load_model(workdir, overrides=["model.fp8_matmuls=True", "data.dataset='bridge'",
+                                         f"data.builder_dir={str(tmp_path / 'gone')!r}"])
+  same, why = with_float8_scales(model, jax.random.key(0))
+  assert same.params is model.params and "per-token float8 scales" in why and "gone" in why
 
 
 @pytest.mark.integration

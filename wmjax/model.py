@@ -13,6 +13,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import ml_collections
+import numpy as np
 import orbax.checkpoint as ocp
 
 from wmjax.codecs import Codec, make_codec
@@ -179,6 +180,12 @@ class LoadedModel:
   def image_shape(self) -> tuple[int, int, int]:
     """The RGB frames the codec takes."""
     return self.codec.image_shape(self.frame_shape)
+
+  def normalize_actions(self, actions: Any) -> np.ndarray:
+    """Raw actions ``[..., A]`` -> what the network takes: normalised by the checkpoint's
+    statistics as it trained (``data.normalization``), zero-padded to ``model.action_dim``."""
+    return self.action_stats.normalize(actions, mode=self.config.data.normalization,
+                                       pad_to=self.config.model.action_dim)
 
 
 def load_model(workdir: str, *, step: int | None = None, params: str = "ema",

@@ -31,6 +31,23 @@ def register(parser: argparse.ArgumentParser, func, takes_overrides: bool = Fals
     parser.epilog = OVERRIDES_HELP
 
 
+def inference_model(workdir: str, args, extra: list[str]):
+  """The checkpoint of ``workdir`` that ``args`` choose (``--step``, ``--params``, ``--param_dtype``
+  where the command has it) with the command's overrides; a ``model.fp8_matmuls`` model with
+  float8 scales calibrated on its training split where that can be read (said in one line;
+  :func:`wmjax.eval.calibration.with_float8_scales`)."""
+  import jax
+
+  from wmjax.eval.calibration import with_float8_scales
+  from wmjax.model import load_model
+  model = load_model(workdir, step=args.step, params=args.params, overrides=overrides(extra),
+                     param_dtype=getattr(args, "param_dtype", "float32"))
+  model, float8 = with_float8_scales(model, jax.random.key(0))
+  if float8:
+    print(f"model.fp8_matmuls: {float8}", flush=True)
+  return model
+
+
 def checkpoint_args(parser: argparse.ArgumentParser, dtype: bool = True) -> None:
   """--step, --params (and --param_dtype) choosing what of a workdir's checkpoints is loaded."""
   parser.add_argument("--step", type=int, default=None, help="checkpoint (default: latest)")

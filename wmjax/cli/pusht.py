@@ -14,12 +14,6 @@ OVERRIDES_NOTE = ("Push-T only. Inference settings of the checkpoint's config ca
                   "e.g. --config.sampling.num_steps=4.")
 
 
-def _load(args, extra):
-  from wmjax.model import load_model
-  return load_model(args.workdir, step=args.step, params=args.params,
-                    overrides=common.overrides(extra))
-
-
 def _steps(args, model) -> int:
   """``--steps``, or the actions of :data:`DEFAULT_CONTROL_STEPS` control steps."""
   from wmjax.tasks.pusht.evaluate import actions_for
@@ -34,7 +28,7 @@ def eval_policy(args, extra) -> int:
   from wmjax.eval.rewards import reward_from_spec
   from wmjax.tasks.pusht.evaluate import (evaluate_policies, policies_from_specs, policy_chunk,
                                           policy_report)
-  model = _load(args, extra)
+  model = common.inference_model(args.workdir, args, extra)
   policies = policies_from_specs(args.policy, policy_chunk(model.config))
   rewards = {spec: reward_from_spec(spec) for spec in args.reward or ["coverage"]}
   out = args.out or f"{args.workdir}/policy_eval"
@@ -54,7 +48,7 @@ def plan(args, extra) -> int:
   coverage for each K."""
   from wmjax.eval.rewards import reward_from_spec
   from wmjax.tasks.pusht.evaluate import plan_in_simulator, policy_chunk, proposal_from_spec
-  model = _load(args, extra)
+  model = common.inference_model(args.workdir, args, extra)
   length = args.plan_length or policy_chunk(model.config)
   proposal = proposal_from_spec(args.proposal, length)
   out = args.out or f"{args.workdir}/plan"

@@ -10,10 +10,8 @@ def run(args, extra) -> int:
   (normalised with the checkpoint's statistics); writes rollout.mp4, rollout.gif, grid.png and
   frames.npy (uint8 [B, c+N, H, W, 3])."""
   from wmjax.eval import inputs, user_rollout
-  from wmjax.model import load_model
 
-  model = load_model(args.workdir, step=args.step, params=args.params,
-                     overrides=common.overrides(extra), param_dtype=args.param_dtype)
+  model = common.inference_model(args.workdir, args, extra)
   frames = inputs.read_frames(args.frames, model.image_shape, resize=args.resize,
                               value_range=args.frame_range)
   actions = inputs.read_actions(args.actions, model.action_stats.action_dim)

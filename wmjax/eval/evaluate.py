@@ -4,7 +4,6 @@ dataset, written out as ``metrics.json``, ``report.md`` and videos."""
 from __future__ import annotations
 
 import dataclasses
-import functools
 import importlib
 import json
 import os
@@ -15,7 +14,7 @@ import jax
 from wmjax import registry
 from wmjax.data.pipeline import member_configs
 from wmjax.data.sources import open_dataset
-from wmjax.eval.calibration import calibrated_float8
+from wmjax.eval.calibration import with_float8_scales
 from wmjax.eval import video as video_lib
 from wmjax.eval.frechet import FrechetDistances
 from wmjax.eval.protocols import evaluate_protocols
@@ -60,13 +59,8 @@ def evaluate_checkpoint(workdir: str, *, split: str | None = None, out: str | No
                                         extra_keys=episodes.spec.extra_keys + (mask_key,))
   resolution = dataset.resolution(episodes.spec)
   task = registry.frame_metrics_of(episodes.spec.name)
-  normalize = functools.partial(model.action_stats.normalize, mode=config.data.normalization,
-                                pad_to=config.model.action_dim)
-  calibration = None
-  if config.model.fp8_matmuls:  # static float8 scales, from data the model trained on
-    model = calibrated_float8(model, dataset.split(data.train_split), resolution, normalize,
-                              jax.random.key(seed + 1))
-    calibration = f"static float8 scales from windows of the {data.train_split!r} split"
+  normalize = model.normalize_actions
+  model, float8 = with_float8_scales(model, jax.random.key(seed + 1))
 
   frechet = None
   if frame_features or clip_features:
@@ -83,7 +77,7 @@ def evaluate_checkpoint(workdir: str, *, split: str | None = None, out: str | No
             f"split {split!r}, {data.dataset}")
   results = dict(results, workdir=os.path.abspath(workdir), step=model.step, split=split,
                  params=params, sampler=config.sampling.to_dict(),
-                 **({"float8": calibration} if calibration else {}))
+                 **({"float8": float8} if float8 else {}))
   with open(os.path.join(out, "metrics.json"), "w") as f:
     json.dump(to_json_safe(results), f, indent=2)
   with open(os.path.join(out, "report.md"), "w") as f:
