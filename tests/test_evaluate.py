@@ -237,18 +237,14 @@ def test_evaluate_command_writes_metrics_report_and_videos(workdir, tmp_path):
 @pytest.mark.integration
 @pytest.mark.slow
 def test_evaluate_with_float8_matmuls_calibrates_on_the_training_split(workdir, tmp_path):
-  """``--config.model.fp8_matmuls=True``: static float8 scales from training windows, and
-  rollouts close to the full-precision model's (the same seed: the same noise)."""
-  scores = {}
-  for name, extra in (("full", []), ("fp8", ["--config.model.fp8_matmuls=True"])):
-    out = tmp_path / name
-    assert cli.main(["evaluate", "--workdir", workdir, "--out", str(out), "--protocols",
-                     "short", "--videos", "0", *extra]) == 0
-    scores[name] = json.loads((out / "metrics.json").read_text())
-  assert "float8" not in scores["full"]
-  assert scores["fp8"]["float8"] == "static float8 scales from windows of the 'train' split"
-  full, fp8 = (scores[k]["short"]["model"]["mse"]["mean"] for k in ("full", "fp8"))
-  assert full != fp8 and fp8 == pytest.approx(full, rel=1e-3)
+  """``--config.model.fp8_matmuls=True``: static float8 scales from training windows (how close
+  a calibrated network stays to the full-precision one: tests/test_float8.py)."""
+  out = tmp_path / "fp8"
+  assert cli.main(["evaluate", "--workdir", workdir, "--out", str(out), "--protocols", "short",
+                   "--videos", "0", "--config.model.fp8_matmuls=True"]) == 0
+  results = json.loads((out / "metrics.json").read_text())
+  assert results["float8"] == "static float8 scales from windows of the 'train' split"
+  assert np.isfinite(results["short"]["model"]["mse"]["mean"])
   # a model whose training data is not on this machine keeps per-token scales, and says why
   model = load_model(workdir, overrides=["model.fp8_matmuls=True", "data.dataset='bridge'",
                                          f"data.builder_dir={str(tmp_path / 'gone')!r}"])
