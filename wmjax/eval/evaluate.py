@@ -60,7 +60,7 @@ def evaluate_checkpoint(workdir: str, *, split: str | None = None, out: str | No
   resolution = dataset.resolution(episodes.spec)
   task = registry.frame_metrics_of(episodes.spec.name)
   normalize = model.normalize_actions
-  model, float8 = with_float8_scales(model, jax.random.key(seed + 1))
+  model, float8 = with_float8_scales(model, jax.random.key(seed + 1), dataset)
 
   frechet = None
   if frame_features or clip_features:
