@@ -290,7 +290,7 @@ def test_episode_mix_defaults_unchanged_and_kinds_interleaved():
   assert mixed.name == default.name + "_m0.5-0.25-0.25_r160"
   np.testing.assert_array_equal(pusht_data.PushT.start_states(mixed, "train"),
                                 pusht_data.PushT.start_states(default, "train"))
-  kinds = pusht_data.episode_kinds(mixed.mix, 640)
+  kinds = synthetic.episode_kinds(mixed.mix, 640)
   assert np.bincount(kinds).tolist() == [320, 160, 160]
   assert all(abs((kinds[:n] == 1).sum() - n / 4) <= 1 for n in range(1, 641))
   kinds, noise, _, _ = next(pusht_data._draws(mixed, 8, np.random.default_rng(0)))
@@ -311,7 +311,7 @@ def test_episode_mix_idle_agents_keep_everything_still_and_random_agents_touch_t
   episodes = list(pusht_data.collect(mixed, 12, np.random.default_rng(3)))
   scripted = list(pusht_data.collect(dataclasses.replace(mixed, mix=(1.0, 0.0, 0.0)), 12,
                                      np.random.default_rng(3)))
-  kinds = pusht_data.episode_kinds(mixed.mix, 12)
+  kinds = synthetic.episode_kinds(mixed.mix, 12)
   moved = {0: [], 1: [], 2: []}
   for kind, episode in zip(kinds, episodes):
     state = episode.observations["state"]

@@ -487,7 +487,8 @@ def complete_config(config: Mapping | ml_collections.ConfigDict, strict: bool = 
 
 # the tasks that come with wmjax, by the dataset each generates: a config that names no task but
 # one of these datasets (one saved before ``task`` existed) uses that task
-BUILT_IN_TASKS = {"gridworld": "wmjax.tasks.gridworld", "pusht": "wmjax.tasks.pusht"}
+BUILT_IN_TASKS = {"gridworld": "wmjax.tasks.gridworld", "pusht": "wmjax.tasks.pusht",
+                  "metaworld": "wmjax.tasks.metaworld"}
 
 
 def task_module(config: Mapping) -> str:

@@ -31,13 +31,16 @@ from wmjax.data.writer import NothingDownloaded, png
 @dataclasses.dataclass
 class GeneratedEpisode:
   """``images [L, H, W, 3]`` uint8, ``actions [L, A]`` (step ``t``'s action leads to frame
-  ``t + 1``; the last one is never used), ``rewards [L]``, per-step ``observations`` extras."""
+  ``t + 1``; the last one is never used), ``rewards [L]``, per-step ``observations`` extras, and
+  the images of further cameras by feature name (``cameras``, ``{name: [L, H, W, 3]}``, the
+  builder's :meth:`SyntheticBuilder.camera_features`)."""
 
   images: np.ndarray
   actions: np.ndarray
   instruction: str
   rewards: np.ndarray
   observations: dict[str, np.ndarray]
+  cameras: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
 
 # the splits' streams are those the datasets were always written with (``seed + offset``)
@@ -61,6 +64,18 @@ def stream(seed: int, purpose: str, *index: int) -> np.random.Generator:
     raise ValueError(f"purpose must be one of {SPLITS + _PURPOSES}, got {purpose!r}")
   key = (_PURPOSES.index(purpose), *index)
   return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=key))
+
+
+def episode_kinds(mix, num_episodes: int) -> np.ndarray:
+  """The kind (index into ``mix``: fractions of kinds of episode, e.g. scripted / random / idle
+  agents) of each of ``num_episodes`` episodes ``[N]`` int: a weighted round robin, every prefix holding each kind's fraction of ``mix`` to within one
+  episode; no randomness (the start states' stream is left alone)."""
+  mix = np.asarray(mix, np.float64)
+  kinds, counts = np.empty(num_episodes, np.int64), np.zeros(len(mix))
+  for n in range(num_episodes):
+    kinds[n] = int(np.argmax((n + 1) * mix - counts))  # the kind furthest behind its share
+    counts[kinds[n]] += 1
+  return kinds
 
 
 def matching(states, reference, atol: float = 1e-6) -> np.ndarray:
@@ -112,6 +127,11 @@ class SyntheticBuilder(NothingDownloaded, tfds.core.GeneratorBasedBuilder):
     """``count`` episodes drawn with ``rng``."""
     raise NotImplementedError(f"{type(self).__name__} must define episodes()")
 
+  def camera_features(self) -> tuple[str, ...]:
+    """Per-step ``observation/<name>`` images of further cameras besides ``image`` (PNG, square
+    at ``image_size`` as ``image``); none by default."""
+    return ()
+
   @classmethod
   def start_states(cls, params, split: str) -> np.ndarray:
     """The start state of every episode of ``split`` (``[N, ...]``, float64), replayed from the
@@ -134,7 +154,8 @@ class SyntheticBuilder(NothingDownloaded, tfds.core.GeneratorBasedBuilder):
     size = self.params.image_size
     step = {
         "observation": {
-            "image": tfds.features.Image(shape=(size, size, 3), encoding_format="png"),
+            **{name: tfds.features.Image(shape=(size, size, 3), encoding_format="png")
+               for name in ("image",) + tuple(self.camera_features())},
             **self.observation_features(),
         },
         "action": tfds.features.Tensor(shape=(self.action_dim(),), dtype=np.float32),
@@ -165,6 +186,7 @@ class SyntheticBuilder(NothingDownloaded, tfds.core.GeneratorBasedBuilder):
       last = len(episode.images) - 1
       steps = [{
           "observation": {"image": png(episode.images[t]),
+                          **{k: png(v[t]) for k, v in episode.cameras.items()},
                           **{k: v[t] for k, v in episode.observations.items()}},
           "action": episode.actions[t], "language_instruction": episode.instruction,
           "reward": episode.rewards[t], "discount": 1.0,

@@ -5,6 +5,14 @@ one model time per frame ``t [B, T]`` and the ``T-1`` actions between the frames
 ``actions [B, T-1, A]`` to the model output ``[B, T, H, W, C]`` (eps, v, x0 or flow velocity,
 whatever the objective trains it to be).
 
+Several cameras (``views = V > 1``): a frame holds the V views of one time step side by side,
+``W = V * Wv`` (as :class:`wmjax.data.oxe.DatasetSpec` tiles several ``image_keys``), each view a
+multiple of the patch size wide. Every view's patches get the same 2-D positions (sin-cos and
+axial RoPE over the view's own grid) plus a learned view embedding, and one spatial attention
+runs over the tokens of all views of a time step; temporal attention stays per token, and the
+views of a step share its action and noise level. ``views = 1`` on the same frames is the tiled
+baseline: positions over the whole ``H x W`` canvas and no view embedding, at the same FLOPs.
+
 Action alignment: ``actions[:, j]`` moves frame ``j`` to frame ``j+1``, so the conditioning vector
 of frame ``j >= 1`` embeds ``actions[:, j-1]``; frame 0, every frame whose action is masked out
 (``action_mask``) and every sample whose actions are dropped (``drop_actions``, action dropout in
@@ -223,6 +231,8 @@ class STDiT(nn.Module):
   # embedding of where its incoming action points, seen from each patch. () : none.
   action_place: tuple[int, ...] = ()
   trajectory_in_temporal: bool = False
+  # camera views side by side in each frame (module docstring); 1: one image, or views tiled
+  views: int = 1
   action_dropout: float = 0.1
   causal_temporal: bool = False
   temporal_first: bool = False  # each layer: temporal block, then spatial (default spatial first)
@@ -264,6 +274,11 @@ class STDiT(nn.Module):
                   or not all(0 <= i < self.action_dim for i in place)):
       raise ValueError(f"action_place must be () or two different action indexes (x, y) below "
                        f"action_dim={self.action_dim}, got {self.action_place!r}")
+    if self.views < 1:
+      raise ValueError(f"views must be >= 1, got {self.views}")
+    if place and self.views > 1:
+      raise ValueError(f"action_place names a place in one image; it is not defined for "
+                       f"views={self.views}")
     if place and self.cond not in ("frame", "per_frame"):
       raise ValueError(f"action_place places each frame's incoming action, so cond must be "
                        f"'frame' or 'per_frame', got {self.cond!r}")
@@ -288,6 +303,9 @@ class STDiT(nn.Module):
                                                     self.action_fourier_features, dtype=dtype)
     if self.action_place:
       self.place_embed = layers.PlaceEmbedder(d, dtype=dtype)
+    if self.views > 1:
+      self.view_embed = self.param("view_embed", logical(nn.initializers.normal(0.02), None,
+                                                         "embed"), (self.views, d))
     self.null_action = self.param("null_action", logical(nn.initializers.normal(0.02), "embed"),
                                   (d,))
     self.blocks = LayerStack(self.depth // 2, self.num_heads, self.mlp_ratio, self.causal_temporal,
@@ -310,8 +328,9 @@ class STDiT(nn.Module):
     p = self.patch_size
     if c != self.in_channels:
       raise ValueError(f"frames must have {self.in_channels} channels, got {c} (shape {x.shape})")
-    if h % p or w % p:
-      raise ValueError(f"frame size must be divisible by the patch size {p}, got {h}x{w}")
+    if h % p or w % (p * self.views):
+      raise ValueError(f"frame size must be divisible by the patch size {p} (the width by "
+                       f"{self.views} views of whole patches), got {h}x{w}")
     if n > self.num_frames:
       raise ValueError(f"the model supports at most {self.num_frames} frames, got {n}")
     if tuple(t.shape) != (b, n):
@@ -460,24 +479,29 @@ class STDiT(nn.Module):
     spatial_cond, temporal_cond, final_cond = self.conditioning(t, actions, action_mask,
                                                                 drop_actions, first)
     gh, gw = h // self.patch_size, w // self.patch_size
-    tokens = self.patch_embed(x.astype(dtype))  # [B, m, P, D]
+    tokens = self.patch_embed(x.astype(dtype))  # [B, m, P, D], row-major over the whole frame
+    rows, cols = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")
+    view_width = gw // self.views
+    view, cols = cols.reshape(-1) // view_width, cols.reshape(-1) % view_width  # [P] each
     pos = np.zeros((1, 1, 1, self.hidden_size))
     if "sincos" in self.spatial_pos:
-      pos = pos + layers.sincos_2d(self.hidden_size, gh, gw,
-                                   self.spatial_sincos_columns_first)[None, None]
+      grid = layers.sincos_2d(self.hidden_size, gh, view_width,
+                              self.spatial_sincos_columns_first)
+      pos = pos + grid[rows.reshape(-1) * view_width + cols][None, None]
     frame_pos = None
     if "sincos" in self.temporal_pos:
       frame_pos = layers.sincos_1d(self.hidden_size, np.arange(first, first + m))[None, :, None]
       if self.temporal_sincos_at == "input":
         pos, frame_pos = pos + frame_pos, None
     tokens = tokens + pos.astype(dtype)
+    if self.views > 1:
+      tokens = tokens + self.view_embed.astype(dtype)[view]
     if self.action_place:  # frame j's incoming action a_{j-1}; frame 0's (zeros) is not kept
       incoming = jnp.pad(actions, ((0, 0), (1, 0), (0, 0)))[:, first:first + m]
       place = self.place_embed(incoming[..., list(self.action_place)], gh, gw)  # [B, m, P, D]
       keep = self._frame_keeps(actions, action_mask, drop_actions, first, m)
       tokens = tokens + jnp.where(keep[:, :, None, None], place, 0).astype(dtype)
-    rows, cols = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")
-    patch_positions = jnp.asarray(np.stack([rows.reshape(-1), cols.reshape(-1)], axis=1))
+    patch_positions = jnp.asarray(np.stack([rows.reshape(-1), cols], axis=1))
 
     tokens, kv = self.blocks(tokens, spatial_cond, temporal_cond, patch_positions, cache,
                              return_kv, None if frame_pos is None else frame_pos.astype(dtype))

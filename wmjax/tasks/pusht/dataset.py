@@ -34,6 +34,7 @@ import numpy as np
 import tensorflow_datasets as tfds
 
 from wmjax.data import oxe, synthetic
+from wmjax.data.synthetic import episode_kinds
 from wmjax.tasks.pusht import simulator
 
 INSTRUCTION = "push the T-shaped block onto the green T"
@@ -115,18 +116,6 @@ class PushTConfig:
     if self.mix == (1.0, 0.0, 0.0):
       return repeat
     return "_m" + "-".join(f"{f:g}" for f in self.mix) + f"_r{self.random_reach:g}" + repeat
-
-
-def episode_kinds(mix, num_episodes: int) -> np.ndarray:
-  """The kind (index into :data:`KINDS`) of each of ``num_episodes`` episodes ``[N]`` int: a
-  weighted round robin, every prefix holding each kind's fraction of ``mix`` to within one
-  episode; no randomness (the start states' stream is left alone)."""
-  mix = np.asarray(mix, np.float64)
-  kinds, counts = np.empty(num_episodes, np.int64), np.zeros(len(mix))
-  for n in range(num_episodes):
-    kinds[n] = int(np.argmax((n + 1) * mix - counts))  # the kind furthest behind its share
-    counts[kinds[n]] += 1
-  return kinds
 
 
 def _draws(config: PushTConfig, num_episodes: int, rng: np.random.Generator):
