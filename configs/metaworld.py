@@ -56,7 +56,7 @@ def get_config(profile: str = "cpu") -> ml_collections.ConfigDict:
       eval_split="test"))
   config.data.metaworld = ml_collections.ConfigDict(dataclasses.asdict(data))
   config.model = model_config(
-      in_channels=3, patch_size=4, depth=6, hidden_size=128, num_heads=4, num_frames=3,
+      in_channels=3, patch_size=6, depth=6, hidden_size=128, num_heads=4, num_frames=3,
       action_dim=4, cond="per_frame", action_embed_ratio=0, action_fourier_features=4,
       causal_temporal=True, temporal_first=True, spatial_pos="sincos+rope", action_dropout=0.1,
       views=1 if profile == "tiled" else views)

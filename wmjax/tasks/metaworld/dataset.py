@@ -62,8 +62,8 @@ class MetaWorldConfig:
   image_size: int = 48
   episode_length: int = 22
   action_repeat: int = 5
-  train_episodes: int = 600
-  test_episodes: int = 60
+  train_episodes: int = 400
+  test_episodes: int = 40
   noise_levels: tuple[float, ...] = (0.0, 0.2, 0.4, 0.6)
   mix: tuple[float, ...] = (0.6, 0.2, 0.2)  # fractions of expert / random / idle agents
   seed: int = 0
@@ -123,9 +123,10 @@ def _draws(params: MetaWorldConfig, num_episodes: int, rng: np.random.Generator)
   return states, params.episode_noise(num_episodes), rng.integers(2**31, size=num_episodes)
 
 
-def run_episode(sim: simulator.ArmSimulator, policy, start_state, steps: int,
+def run_episode(sim: simulator.ArmSimulator, act, start_state, steps: int,
                 rng: np.random.Generator) -> dict[str, np.ndarray]:
-  """``policy`` on the simulator's true state from ``start_state`` for ``steps`` actions:
+  """``act(t, state [6], views [V, S, S, 3], rng) -> action [4]`` from ``start_state`` for
+  ``steps`` actions (``state``: the simulator's true one):
   ``{'frames' [steps+1, V, S, S, 3], 'actions' [steps, 4], 'state' [steps+1, 6], 'ee_px'
   [steps+1, 2], 'success' [steps+1], 'sim_state' [steps+1, n]}``."""
   sim.reset(start_state)
@@ -138,7 +139,7 @@ def run_episode(sim: simulator.ArmSimulator, policy, start_state, steps: int,
     out["success"].append(success)
     out["sim_state"].append(sim.sim_state())
     if t < steps:
-      action = policy(out["state"][-1], rng)
+      action = act(t, out["state"][-1], out["frames"][-1], rng)
       out["actions"].append(action)
       _, success = sim.step(action)
   return {k: np.stack(v) for k, v in out.items()}
@@ -150,8 +151,9 @@ def _simulate(params: MetaWorldConfig, draws) -> list[synthetic.GeneratedEpisode
   episodes = []
   try:
     for start, noise, seed in draws:
-      run = run_episode(sim, policy_for(params.task, noise), start, params.episode_length - 1,
-                        np.random.default_rng(seed))
+      policy = policy_for(params.task, noise)
+      run = run_episode(sim, lambda t, state, views, rng: policy(state, rng), start,
+                        params.episode_length - 1, np.random.default_rng(seed))
       length = params.episode_length
       actions = np.concatenate([run["actions"], simulator.idle(None, None)[None]])
       frames = run["frames"]
