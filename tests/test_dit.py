@@ -314,6 +314,28 @@ def test_action_place_is_silent_where_actions_are_dropped_and_checked():
     _model("video", action_place=(0, 1))
 
 
+def test_views_share_positions_and_only_the_view_embedding_tells_them_apart():
+  """model.views=2: the views of a frame are exchangeable but for the view embedding (same 2-D
+  positions, one spatial attention over all their tokens); views=1 on the same frame is the
+  tiled baseline, whose positions run over the whole canvas."""
+  model, params, (x, t, a) = _model("per_frame", views=2, spatial_pos="sincos+rope")
+  params = nn.meta.unbox(params)
+  swap = lambda v: jnp.concatenate([v[..., 4:, :], v[..., :4, :]], axis=-2)  # 8 wide: 2 views of 4
+  forward = jit_apply(model)
+  apply = lambda p, frames: forward(p, frames, t, a)
+  assert params["params"]["view_embed"].shape == (2, model.hidden_size)
+  blind = jax.tree_util.tree_map_with_path(
+      lambda path, v: jnp.zeros_like(v) if "view_embed" in jax.tree_util.keystr(path) else v,
+      params)
+  np.testing.assert_allclose(apply(blind, swap(x)), swap(apply(blind, x)), rtol=1e-4, atol=1e-5)
+  assert not np.allclose(apply(params, swap(x)), swap(apply(params, x)), atol=1e-3)
+  tiled = model.clone(views=1)
+  no_view = {"params": {k: v for k, v in blind["params"].items() if k != "view_embed"}}
+  assert not np.allclose(jit_apply(tiled)(no_view, x, t, a), apply(blind, x), atol=1e-3)
+  with pytest.raises(ValueError, match="by 2 views of whole patches"):
+    apply(params, x[..., :6, :])
+
+
 @pytest.mark.parametrize("shape_change,message", [
     (dict(c=3), "must have 4 channels, got 3"),
     (dict(h=9), "divisible by the patch size 2, got 9x8"),

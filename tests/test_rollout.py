@@ -177,8 +177,8 @@ def test_action_mask_makes_padded_trajectories_match_their_own_rollout():
     ("wpe_600m.py", ("sampling.num_steps=3",), 3, 2),
     ("wpe_600m.py", ("sampling.matrix='pyramid'", "sampling.num_steps=2",
                      "sampling.guidance_scale=2.0", "model.temporal_pos='rope'"), 2, 3),
-    ("irasim.py:S", ("model.causal_temporal=True", "model.cond='video'", "sampling.num_steps=3"),
-     1, 4),
+    ("irasim.py:S", ("model.causal_temporal=True", "model.cond='video'", "sampling.num_steps=3",
+                     "model.views=2"), 1, 4),  # two views side by side
 ])
 @pytest.mark.slow
 def test_kv_cache_rollout_equals_the_uncached_rollout(config, overrides, c, h):

@@ -15,6 +15,10 @@ MetaWorld's scripted experts read exactly these two from their observation vecto
 
 Actions are MetaWorld's: ``[dx, dy, dz, grip]`` in ``[-1, 1]``, the hand's target moving by
 ``0.01 * d`` metres a control step.
+
+Importing this module sets ``MUJOCO_GL=egl`` unless it is set: MuJoCo picks its OpenGL platform
+when it is first imported, so import this module (or set the variable) before ``mujoco`` or
+``metaworld`` is imported elsewhere.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ import os
 from typing import Callable
 
 import numpy as np
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering: before mujoco is imported
 
 # task -> (its scripted expert in metaworld.policies, what the object is)
 TASKS = {
@@ -43,7 +49,6 @@ Policy = Callable[[np.ndarray, np.random.Generator], np.ndarray]
 
 def check_installed() -> None:
   """ImportError naming the extra to install when MetaWorld is missing."""
-  os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering, before mujoco is imported
   try:
     import metaworld  # noqa: F401
     import mujoco  # noqa: F401

@@ -1,0 +1,104 @@
+"""The MetaWorld task: start states held out by construction, two cameras in the data, exact
+replay, the reader's round trip and the command line's one-line errors."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from conftest import ROOT
+from wmjax import cli
+from wmjax.config import load_config
+from wmjax.data import synthetic
+from wmjax.data.sources import ArrayRecordEpisodes
+from wmjax.data.rlds import decode_image
+from wmjax.tasks.metaworld import dataset, metrics, simulator  # sets MUJOCO_GL before mujoco loads
+from wmjax.tasks.metaworld.reader import ArmReader, _init
+
+pytest.importorskip("metaworld", reason="needs the metaworld extra")
+
+from wmjax.tasks.metaworld import evaluate  # noqa: E402  (the evaluation layer)
+
+pytestmark = pytest.mark.integration
+TINY = dataset.MetaWorldConfig(train_episodes=3, test_episodes=2, episode_length=4,
+                               image_size=16)
+
+
+def test_metaworld_evaluation_start_states_are_held_out_from_training():
+  params = dataset.MetaWorldConfig(train_episodes=50, test_episodes=10)
+  train = dataset.MetaWorld.start_states(params, "train")
+  test = dataset.MetaWorld.start_states(params, "test")
+  assert train.shape == (50, len(simulator.StartSpace.of(params.task).low))
+  assert not synthetic.matching(test, train).any()
+  states = evaluate.initial_states(params, 8)
+  assert evaluate.held_out(params, states)
+  assert not evaluate.held_out(params, np.concatenate([states, train[3:4]]))
+  # the planning stream is not the evaluation stream
+  planned = evaluate.initial_states(params, 8, purpose="plan")
+  assert not synthetic.matching(planned, states).any()
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+  return dataset.prepare(str(tmp_path_factory.mktemp("metaworld")), TINY)
+
+
+def test_episodes_hold_both_cameras_side_by_side_and_replay_exactly(tiny_dataset):
+  source = ArrayRecordEpisodes(tiny_dataset, "train")
+  replay = ("observation/sim_state",)  # read on demand, not carried into training windows
+  source = ArrayRecordEpisodes(tiny_dataset, "train", dataclasses.replace(
+      source.spec, extra_keys=source.spec.extra_keys + replay))
+  assert len(source) == 3
+  episode = source.episode(0)
+  frame = decode_image(episode.images[0], None)
+  assert frame.shape == (16, 32, 3)  # topview | gripperPOV
+  views = metrics.split_views(frame[None])[0]
+  assert not np.array_equal(views[0], views[1])
+  noise = [float(source.episode(i).extras["policy_noise"][0]) for i in range(3)]
+  assert noise == list(TINY.episode_noise(3))
+  # the stored simulator state and action give the next step's state
+  sim = simulator.ArmSimulator(TINY.task, TINY.views, TINY.image_size, TINY.action_repeat)
+  try:
+    sim.reset(episode.extras["start_state"][0])
+    np.testing.assert_allclose(sim.sim_state(), episode.extras["sim_state"][0], atol=1e-6)
+    sim.restore(episode.extras["sim_state"][1])
+    sim.step(episode.actions[1])
+    np.testing.assert_allclose(sim.state(), episode.extras["state"][2], atol=1e-5)
+    np.testing.assert_array_equal(simulator.ArmSimulator.render(sim)[0],
+                                  decode_image(episode.images[2], None)[:, :16])
+  finally:
+    sim.close()
+
+
+def test_the_config_reads_the_dataset_as_two_views():
+  config = load_config(str(ROOT / "configs" / "metaworld.py"))
+  assert config.model.views == 2 and tuple(config.frame_shape) == (48, 96, 3)
+  tiled = load_config(str(ROOT / "configs" / "metaworld.py:tiled"))
+  assert tiled.model.views == 1 and tuple(tiled.frame_shape) == (48, 96, 3)
+
+
+def test_reader_reads_per_view_and_round_trips(tmp_path):
+  params = _init((8, 8, 8), 2, 16, 0)
+  weights = np.array([[0.75] * 8, [0.25] * 8], np.float32)
+  reader = ArmReader(params, np.zeros(8, np.float32), np.ones(8, np.float32), weights, 16, 2,
+                     (8, 8, 8))
+  frames = np.random.default_rng(0).integers(0, 256, (3, 16, 32, 3)).astype(np.uint8)
+  read = reader.read(frames)
+  assert read["per_view"].shape == (3, 2, 8) and read["success"].shape == (3,)
+  np.testing.assert_allclose(read["state"], 0.75 * read["per_view"][:, 0, 2:]
+                             + 0.25 * read["per_view"][:, 1, 2:], rtol=1e-5, atol=1e-6)
+  again = ArmReader.load(reader.save(str(tmp_path / "reader"))).read(frames)
+  np.testing.assert_allclose(again["per_view"], read["per_view"], rtol=1e-6)
+  with pytest.raises(ValueError, match=r"frames \[N, 16, 32, 3\]"):
+    reader.read(frames[:, :, :16])
+
+
+@pytest.mark.parametrize("flag,message", [
+    ("--task=push-v9", "unknown MetaWorld task 'push-v9'; valid tasks: button-press-v3"),
+    ("--views=topview,wrist", "unknown camera(s) ['wrist']; valid cameras: topview"),
+])
+def test_prepare_names_the_valid_tasks_and_cameras(tmp_path, capsys, flag, message):
+  assert cli.main(["data", "prepare", "metaworld", "--data_dir", str(tmp_path), flag]) != 0
+  err = capsys.readouterr().err
+  assert message in err and len(err.strip().splitlines()) == 1
+  assert not any(tmp_path.iterdir())
