@@ -67,9 +67,9 @@ def get_config(profile: str = "cpu") -> ml_collections.ConfigDict:
                                     context_level=0.0, clip_denoised=True, kv_cache=True)
   config.rollout = ml_collections.ConfigDict(dict(context=2, horizon=1, short_actions=8))
   config.optim = optim_config(learning_rate=2e-3, schedule="cosine", warmup_steps=100,
-                              total_steps=3000, b2=0.99, grad_clip=1.0, ema_decay=0.999)
+                              total_steps=1800, b2=0.99, grad_clip=1.0, ema_decay=0.999)
   config.train = ml_collections.ConfigDict(dict(
-      num_steps=3000, log_every=50, checkpoint_every=750, eval_every=3000, eval_windows=32,
+      num_steps=1800, log_every=50, checkpoint_every=600, eval_every=1800, eval_windows=32,
       max_checkpoints=4, auto_fit=True, memory_budget_gib=None))
   config.mesh = (-1, 1, 1)  # (data, fsdp, tensor)
   config.batch_size = 16  # global

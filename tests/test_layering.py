@@ -24,7 +24,8 @@ LAYERS = (
     ("wmjax.codecs", "wmjax.model", "wmjax.policy"),
     ("wmjax.rollout", "wmjax.env", "wmjax.interactive"),
     ("wmjax.tasks",),
-    ("wmjax.train", "wmjax.eval", "wmjax.checkpoints", "wmjax.tasks.pusht.evaluate"),
+    ("wmjax.train", "wmjax.eval", "wmjax.checkpoints", "wmjax.tasks.pusht.evaluate",
+     "wmjax.tasks.metaworld.evaluate"),
     ("wmjax.cli",),
 )
 # what may not be loaded though it sits lower: eval never imports train, nor a task by name (it

@@ -58,7 +58,7 @@ def main(argv=None) -> int:
   parser.add_argument("--episodes", type=int, default=24, help="episodes per policy")
   parser.add_argument("--metric_episodes", type=int, default=32,
                       help="test episodes of the open-loop arm metrics")
-  parser.add_argument("--reader_steps", type=int, default=3000, help="reader training steps")
+  parser.add_argument("--reader_steps", type=int, default=2000, help="reader training steps")
   parser.add_argument("--data_workers", type=int, default=max(1, len(os.sched_getaffinity(0))),
                       help="processes simulating the dataset at once (the data is the same for "
                            "any number)")

@@ -16,9 +16,9 @@ split: the floor under every metric it reads off a world model's frames.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import os
+import time
 from typing import Any
 
 import flax.linen as nn
@@ -51,15 +51,18 @@ class ViewReaderCNN(nn.Module):
     return nn.Dense(TARGETS + 1)(x)
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _apply_views(module: ViewReaderCNN, params, views):
-  """``params`` stacked over views, ``views [V, B, S, S, 3]`` -> ``[V, B, TARGETS + 1]``."""
-  return jax.vmap(module.apply)(params, views)
+def _apply(module: ViewReaderCNN, params, views):
+  """``params`` (one tree per view), ``views [V, B, S, S, 3]`` -> ``[V, B, TARGETS + 1]``. A loop
+  over the views, not a vmap: vmapped kernels become a grouped convolution, 4x slower on a CPU."""
+  return jnp.stack([module.apply(p, v) for p, v in zip(params, views)])
+
+
+_apply_views = jax.jit(_apply, static_argnums=0)
 
 
 @dataclasses.dataclass
 class ArmReader:
-  """A fitted reader: ``params`` stacked over the ``views`` views, the targets' ``mean`` /
+  """A fitted reader: ``params`` (a tuple, one tree per view), the targets' ``mean`` /
   ``std`` ``[TARGETS]``, and ``weights [V, TARGETS]`` (each view's share of the fused estimate)."""
 
   params: Any
@@ -113,9 +116,9 @@ class ArmReader:
                tuple(meta["widths"]))
 
 
-def _init(widths, views: int, size: int, seed: int):
+def _init(widths, views: int, size: int, seed: int) -> tuple:
   keys = jax.random.split(jax.random.key(seed), views)
-  return jax.vmap(lambda k: ViewReaderCNN(widths).init(k, jnp.zeros((1, size, size, 3))))(keys)
+  return tuple(ViewReaderCNN(widths).init(k, jnp.zeros((1, size, size, 3))) for k in keys)
 
 
 def labelled_frames(builder_dir: str, split: str, max_frames: int | None = None, seed: int = 0
@@ -168,11 +171,12 @@ def cross_view_gap(reader: ArmReader, frames) -> np.ndarray:
 
 def fit_reader(frames, targets, success, *, validation, steps: int = 2000,
                batch_size: int = 64, learning_rate: float = 1e-3, widths=(32, 64, 64),
-               seed: int = 0) -> tuple[ArmReader, dict[str, Any]]:
+               seed: int = 0, log_every: int = 500) -> tuple[ArmReader, dict[str, Any]]:
   """Fit one :class:`ViewReaderCNN` per view to ``frames [N, S, V*S, 3]``, ``targets [N,
   TARGETS]`` and ``success [N]`` (squared error on the standardised targets plus the success's
   class-balanced logistic loss); ``validation = (frames, targets, success)`` of another split
-  sets the fusion weights and is reported (:func:`reader_errors`)."""
+  sets the fusion weights and is reported (:func:`reader_errors`). Prints one line every
+  ``log_every`` steps."""
   frames, targets = np.asarray(frames), np.asarray(targets, np.float32)
   success = np.asarray(success, np.float32)
   if frames.ndim != 4 or len(frames) != len(targets) or len(frames) != len(success):
@@ -190,7 +194,7 @@ def fit_reader(frames, targets, success, *, validation, steps: int = 2000,
   @jax.jit
   def step(params, opt_state, x, y, s, w):
     def loss_fn(p):
-      out = jax.vmap(module.apply)(p, x)  # [V, B, TARGETS + 1]
+      out = _apply(module, p, x)  # [V, B, TARGETS + 1]
       regression = jnp.mean((out[..., :TARGETS] - y) ** 2)
       logistic = jnp.mean(w * optax.sigmoid_binary_cross_entropy(out[..., TARGETS], s))
       return regression + logistic
@@ -199,12 +203,16 @@ def fit_reader(frames, targets, success, *, validation, steps: int = 2000,
     return optax.apply_updates(params, updates), opt_state, loss
 
   rng = np.random.default_rng(seed)
-  for _ in range(steps):
+  start = time.monotonic()
+  for i in range(steps):
     index = rng.integers(0, len(frames), batch_size)
     x = np.moveaxis(split_views(to_model(frames[index])), 1, 0)
     params, opt_state, loss = step(params, opt_state, jnp.asarray(x),
                                    jnp.asarray((targets[index] - mean) / std),
                                    jnp.asarray(success[index]), jnp.asarray(balance[index]))
+    if (i + 1) % log_every == 0 or i + 1 == steps:
+      print(f"reader step {i + 1}/{steps}: loss {float(loss):.4f}, "
+            f"{time.monotonic() - start:.0f} s", flush=True)
   uniform = np.full((views, TARGETS), 1.0 / views, np.float32)
   reader = ArmReader(params, mean, std, uniform, size, views, tuple(widths))
   val_frames, val_targets, val_success = validation
