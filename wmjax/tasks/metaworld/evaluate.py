@@ -34,7 +34,9 @@ from wmjax.tasks.metaworld.dataset import MetaWorld, MetaWorldConfig, run_episod
 from wmjax.tasks.metaworld.reader import ArmReader
 
 # the policies compared when none are named: the expert at four noise levels, and standing still
-DEFAULT_POLICIES = ("expert", "expert:0.2", "expert:0.4", "expert:0.6", "idle")
+# (in the simulator, on the reader's state, 12 held-out starts: success 0.75 / 0.58 / - / 0.25 /
+# 0 for noise 0 / 0.2 / 0.3 / 0.4 / idle; noise 0.6 fails as idle does)
+DEFAULT_POLICIES = ("expert", "expert:0.2", "expert:0.3", "expert:0.4", "idle")
 
 
 def params_of(config) -> MetaWorldConfig:
