@@ -5,13 +5,14 @@ the library and printing the result.
   wmjax evaluate --workdir DIR [--split test] [--protocols short,long,sweep]        (evaluate)
   wmjax rollout --workdir DIR --frames FILE [FILE ...] --actions FILE --out DIR      (rollout)
   wmjax eval-policy --workdir DIR [--policy push:0.1 ...] [--reward coverage|...]   (pusht)
+  wmjax eval-policy --workdir DIR --reader DIR [--policy expert:0.2 ...]   (pusht, MetaWorld)
   wmjax plan --workdir DIR [--candidates 1,5,10,50] [--proposal push:0.2]            (pusht)
   wmjax clone-policy --workdir DIR --out POLICY [--task reach]                      (policy)
   wmjax improve --workdir DIR --policy POLICY --out NEW [--rounds 3]                 (policy)
   wmjax launch --num_processes 2 -- train --config configs/gridworld.py --workdir DIR (launch)
   wmjax info --config configs/irasim.py:XL [--config.key=value ...]                  (info)
   wmjax compile --config configs/irasim.py:XL --target h100|v5p:2x2x1|cpu:N          (compile)
-  wmjax data prepare gridworld|pusht --data_dir DIR [--num_squares N ...]            (data)
+  wmjax data prepare gridworld|pusht|metaworld --data_dir DIR [--task T --views A,B ...] (data)
   wmjax data convert SRC_BUILDER_DIR DST_DIR
   wmjax data encode --config FILE --out DIR [--splits train,test]
   wmjax data stats BUILDER_DIR [--split train] [--recompute]
@@ -21,8 +22,8 @@ the library and printing the result.
   wmjax data import wpe SRC OUT [--subsets rt_1,bridge_v2]
   wmjax import irasim CKPT.pt --workdir DIR [--dataset rt1|bridge] [--weights ema|model] (import)
 
-``eval-policy`` and ``plan`` are Push-T's: they check a Push-T world model against the gym-pusht
-simulator. ``clone-policy`` and ``improve`` train a learnable policy on a control task of the
+``eval-policy`` checks a Push-T or a MetaWorld world model against its simulator; ``plan`` is
+Push-T's. ``clone-policy`` and ``improve`` train a learnable policy on a control task of the
 model's task module (the gridworld's ``reach``, Push-T's ``push``) and check it in the task's true
 environment.
 Config overrides use ``--config.dotted.key=value`` with Python literal values (train, evaluate,

@@ -1,7 +1,7 @@
-"""The Push-T task's commands, checked against the gym-pusht simulator: ``wmjax eval-policy``
-(policy values in the world model vs the simulator) and ``wmjax plan`` (model-predictive control
-run in the simulator). Both need a world model trained on Push-T (``wmjax data prepare pusht``,
-configs/pusht.py); the work is :mod:`wmjax.tasks.pusht.evaluate`'s."""
+"""The simulator tasks' commands: ``wmjax eval-policy`` (policy values in the world model vs the
+simulator, for a Push-T or a MetaWorld model) and ``wmjax plan`` (model-predictive control run in
+the gym-pusht simulator, Push-T only); the work is :mod:`wmjax.tasks.pusht.evaluate`'s and
+:mod:`wmjax.tasks.metaworld.evaluate`'s."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ from wmjax.cli import common
 # episode length when --steps is not given, in control steps of 0.1 s: the same time whatever the
 # dataset's action_repeat
 DEFAULT_CONTROL_STEPS = 24
-OVERRIDES_NOTE = ("Push-T only. Inference settings of the checkpoint's config can be overridden, "
+METAWORLD = "wmjax.tasks.metaworld"
+OVERRIDES_NOTE = ("Inference settings of the checkpoint's config can be overridden, "
                   "e.g. --config.sampling.num_steps=4.")
 
 
@@ -25,10 +26,15 @@ def eval_policy(args, extra) -> int:
   from the same initial states: Monte Carlo values (mean ± stderr), Pearson / Spearman / Kendall,
   rank agreement, MMRV, value gap; writes policy_eval.json, policy_eval.md and one video per
   policy (simulator | world model | difference)."""
+  model = common.inference_model(args.workdir, args, extra)
+  if model.config.get("task") == METAWORLD:
+    return _eval_arm_policy(args, model)
+  if args.reader:
+    raise ValueError("--reader is for a MetaWorld model; this one's task is "
+                     f"{model.config.get('task')!r}")
   from wmjax.eval.rewards import reward_from_spec
   from wmjax.tasks.pusht.evaluate import (evaluate_policies, policies_from_specs, policy_chunk,
                                           policy_report)
-  model = common.inference_model(args.workdir, args, extra)
   policies = policies_from_specs(args.policy, policy_chunk(model.config))
   rewards = {spec: reward_from_spec(spec) for spec in args.reward or ["coverage"]}
   out = args.out or f"{args.workdir}/policy_eval"
@@ -38,6 +44,31 @@ def eval_policy(args, extra) -> int:
                              video_format=args.video_format)
   print(policy_report(result))
   print(f"wrote {out}/policy_eval.json, policy_eval.md and videos/")
+  return 0
+
+
+def _eval_arm_policy(args, model) -> int:
+  """MetaWorld: image-based policies (the expert on the state a reader reads off frames) in the
+  simulator and closed loop in the world model, from held-out start states."""
+  from wmjax.tasks.metaworld.evaluate import DEFAULT_POLICIES, evaluate_policies
+  from wmjax.tasks.metaworld.reader import ArmReader
+  if not args.reader:
+    raise ValueError("a MetaWorld model's policies act on, and are scored by, a frame reader: "
+                     "give --reader DIR (experiments/metaworld/run.py --stage reader fits one)")
+  if args.reward or args.scan:
+    raise ValueError("--reward and --scan are Push-T's; a MetaWorld model is scored by its "
+                     "--reader's success")
+  out = args.out or f"{args.workdir}/policy_eval"
+  result = evaluate_policies(model, ArmReader.load(args.reader), out,
+                             specs=args.policy or DEFAULT_POLICIES, episodes=args.episodes,
+                             steps=args.steps, seed=args.seed)
+  for name, value in result["policies"].items():
+    print(f"{name:12s} simulator {value['simulator']['mean']:.3f} ± "
+          f"{value['simulator']['stderr']:.3f}   world model {value['world_model']['mean']:.3f} ± "
+          f"{value['world_model']['stderr']:.3f}")
+  print(f"pearson {result['agreement']['pearson']:.3f} {result['intervals']['pearson']}, "
+        f"spearman {result['agreement']['spearman']:.3f}; held out: {result['held_out']}")
+  print(f"wrote {out}/policy_eval.json and one PNG per policy")
   return 0
 
 
@@ -63,7 +94,8 @@ def plan(args, extra) -> int:
 
 def _simulator_args(parser, default_out: str) -> None:
   parser.add_argument("--workdir", required=True,
-                      help="workdir of a model trained on Push-T, with checkpoints/")
+                      help="workdir of a model trained on Push-T (or, for eval-policy, "
+                           "MetaWorld), with checkpoints/")
   parser.add_argument("--episodes", type=int, default=32,
                       help="episodes, i.e. initial states (default 32)")
   parser.add_argument("--steps", type=int, default=None,
@@ -77,17 +109,22 @@ def _simulator_args(parser, default_out: str) -> None:
 
 def add_parser(sub) -> None:
   """The ``eval-policy`` and ``plan`` commands."""
-  policy = sub.add_parser("eval-policy", help="Push-T: policy values in the world model vs the "
-                                              "gym-pusht simulator",
+  policy = sub.add_parser("eval-policy", help="Push-T or MetaWorld: policy values in the world "
+                                              "model vs the simulator",
                           description=eval_policy.__doc__, epilog=OVERRIDES_NOTE)
   _simulator_args(policy, "policy_eval")
   policy.add_argument("--policy", action="append",
-                      help="push | push:NOISE | stay | learned:DIR (wmjax clone-policy / "
-                           "improve) | module:attribute, repeatable (default: push, push:0.1, "
-                           "push:0.2, push:0.5, stay)")
+                      help="Push-T: push | push:NOISE | stay | learned:DIR (wmjax clone-policy "
+                           "/ improve) | module:attribute (default: push, push:0.1, push:0.2, "
+                           "push:0.5, stay); MetaWorld: expert | expert:NOISE | random | idle "
+                           "(default: expert, expert:0.2, expert:0.3, expert:0.4, idle); "
+                           "repeatable")
+  policy.add_argument("--reader", default=None,
+                      help="MetaWorld: the frame reader's directory (its policies act on the "
+                           "state it reads, and it reads success off imagined frames)")
   policy.add_argument("--reward", action="append",
-                      help="coverage | vlm | classifier:DIR | goal:IMAGE, repeatable, all scored "
-                           "on the same rollouts (default: coverage)")
+                      help="Push-T: coverage | vlm | classifier:DIR | goal:IMAGE, repeatable, all "
+                           "scored on the same rollouts (default: coverage)")
   policy.add_argument("--scan", action="store_true",
                       help="roll out inside one jitted scan (pure-JAX policies)")
   policy.add_argument("--videos", type=int, default=4, help="episodes per policy video")
