@@ -234,9 +234,10 @@ def _read(path: str):
 
 
 def _write(path: str, value) -> None:
+  from wmjax.eval.report import to_json_safe
   os.makedirs(os.path.dirname(path), exist_ok=True)
   with open(path, "w") as f:
-    json.dump(value, f, indent=2)
+    json.dump(to_json_safe(value), f, indent=2)
 
 
 if __name__ == "__main__":

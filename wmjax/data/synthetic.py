@@ -68,8 +68,9 @@ def stream(seed: int, purpose: str, *index: int) -> np.random.Generator:
 
 def episode_kinds(mix, num_episodes: int) -> np.ndarray:
   """The kind (index into ``mix``: fractions of kinds of episode, e.g. scripted / random / idle
-  agents) of each of ``num_episodes`` episodes ``[N]`` int: a weighted round robin, every prefix holding each kind's fraction of ``mix`` to within one
-  episode; no randomness (the start states' stream is left alone)."""
+  agents) of each of ``num_episodes`` episodes ``[N]`` int: a weighted round robin, every prefix
+  holding each kind's fraction of ``mix`` to within one episode; no randomness (the start states'
+  stream is left alone)."""
   mix = np.asarray(mix, np.float64)
   kinds, counts = np.empty(num_episodes, np.int64), np.zeros(len(mix))
   for n in range(num_episodes):
