@@ -32,6 +32,7 @@ import ml_collections
 
 from wmjax.codecs import codec_config
 from wmjax.config import model_config, optim_config, sampling_config
+from wmjax.data.oxe import spec_config
 from wmjax.tasks.metaworld.dataset import MetaWorldConfig
 
 PROFILES = ("cpu", "tiled", "drawer", "h100")
@@ -53,7 +54,10 @@ def get_config(profile: str = "cpu") -> ml_collections.ConfigDict:
   config.data = ml_collections.ConfigDict(dict(
       dataset="metaworld", data_dir="~/tensorflow_datasets", frames=3, train_stride=1,
       eval_stride=8, normalization="mean_std", num_workers=0, train_split="train",
-      eval_split="test"))
+      eval_split="test",
+      # the dataset's own spec (two views); data views other than two name their keys here:
+      # --config.data.spec.image_keys="('observation/image', 'observation/image_1', ...)"
+      spec=spec_config(action_keys=())))
   config.data.metaworld = ml_collections.ConfigDict(dataclasses.asdict(data))
   config.model = model_config(
       in_channels=3, patch_size=6, depth=6, hidden_size=128, num_heads=4, num_frames=3,

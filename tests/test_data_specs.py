@@ -209,6 +209,13 @@ def test_a_spec_in_config_reads_like_the_built_in_one(fractal):
       "my_robot: the dataset's features match no known layout: spec.instruction_key 'wrong' not "
       "among the step keys (instructions there: ['observation/natural_language_instruction']); "
       "set config.data.spec.instruction_key ('' for none)")
+  # a spec field set on a built-in dataset applies to its spec (no override silently ignored)
+  changed = oxe.specs_from_config({"dataset": "bridge", "spec": oxe.spec_config(
+      action_keys=(), instruction_key="WRONG", image_keys=["observation/image_1"])})
+  assert [(s.layout, s.instruction_key, s.image_keys) for s in changed] == [
+      ("oxe", "WRONG", ("observation/image_1",)), ("bridge_v2", "WRONG", ("observation/image_1",))]
+  assert oxe.specs_from_config({"dataset": "bridge", "spec": oxe.spec_config(action_keys=())}) == (
+      oxe.SPECS["bridge"])
 
 
 def test_inspect_prints_features_and_a_spec_that_reads(fractal):

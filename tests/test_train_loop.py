@@ -75,6 +75,9 @@ def test_kill_and_resume_is_bit_identical(data_dir, tmp_path):
   resumed = subprocess.run(_train_command(interrupted, overrides), cwd=ROOT, env=_env(),
                            check=True, capture_output=True, text=True)
   assert "resumed from step" in resumed.stdout
+  # to a pipe, not a terminal: one plain progress line per log, no carriage-return bar
+  assert "step 8/8: loss " in resumed.stdout and "ETA 0:00" in resumed.stdout
+  assert "\r" not in resumed.stderr and "train:" not in resumed.stderr
   _, errors = uninterrupted.communicate(timeout=300)
   assert uninterrupted.returncode == 0, errors[-3000:]
 

@@ -239,7 +239,9 @@ CONFIG_OVERRIDES = {"image_key": "image_keys", "resize": "resize", "missing_imag
 
 def specs_from_config(data: Mapping[str, Any]) -> tuple[DatasetSpec, ...]:
   """Candidate specs of a data config (``config.data`` or a mixture member): ``data.spec`` when
-  it names action keys, else the built-in layouts of ``data.dataset``; then the overrides
+  it names action keys, else the built-in layouts of ``data.dataset`` with every field
+  ``data.spec`` sets to other than the schema's default applied to each (e.g.
+  ``--config.data.spec.instruction_key=KEY`` on a built-in dataset); then the overrides
   ``data.image_key`` (str or tuple, ``""`` keeps the spec's), ``data.resize``,
   ``data.missing_image`` and ``data.frame_step`` where set."""
   name = data.get("dataset") or ""
@@ -248,7 +250,11 @@ def specs_from_config(data: Mapping[str, Any]) -> tuple[DatasetSpec, ...]:
   if given.get("action_keys"):
     candidates = (DatasetSpec.from_dict({**given, "name": given.get("name") or name}),)
   elif name in SPECS:
-    candidates = SPECS[name]
+    defaults = {f.name: f.default for f in dataclasses.fields(DatasetSpec)}
+    normal = lambda v: tuple(v) if isinstance(v, list) else v
+    changed = {k: v for k, v in given.items()
+               if k in defaults and k not in ("name", "action_keys") and normal(v) != defaults[k]}
+    candidates = tuple(dataclasses.replace(s, **changed) for s in SPECS[name])
   elif not name:
     raise ValueError("config.data names no dataset: a model-only config (configs/irasim.py "
                      "without a dataset, configs/wpe_600m.py) trains through a recipe that adds "

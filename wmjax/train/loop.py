@@ -66,6 +66,16 @@ from wmjax.train.workdir import (METRICS_LOG, claimed, record_config_changes,
 LIBRARY_LOG = "train.log"  # orbax's and asyncio's warnings and errors during training
 
 
+def progress_line(step: int, num_steps: int, start: int, loss: float, samples_per_s: float,
+                  elapsed: float) -> str:
+  """One line of training progress for a log file: step, loss, speed, elapsed time and the time
+  left at the speed of the steps run since ``start`` (where this run began or resumed)."""
+  left = (num_steps - step) * elapsed / max(step - start, 1)
+  minutes = lambda seconds: f"{int(seconds // 60)}:{int(seconds % 60):02d}"
+  return (f"step {step}/{num_steps}: loss {loss:.4f}, {samples_per_s:.1f} samples/s, elapsed "
+          f"{minutes(elapsed)}, ETA {minutes(left)}")
+
+
 class NonFiniteLossError(RunError):
   """The loss or the train state became NaN or inf; training stopped without saving the bad
   state."""
@@ -409,9 +419,12 @@ class _Run:
     way."""
     from tqdm import tqdm
     every, num_steps = self.config.train, self.config.train.num_steps
-    self.bar = tqdm(total=num_steps, initial=self.start, disable=not self.is_chief,
-                    desc="train", dynamic_ncols=True)
-    tick = time.perf_counter()
+    # a progress bar on a terminal; to a file (a batch job's log, nohup, CI) one plain line per
+    # train.log_every steps instead of carriage-return updates on one ever-growing line
+    self.plain_log = self.is_chief and not sys.stderr.isatty()
+    self.bar = tqdm(total=num_steps, initial=self.start,
+                    disable=not self.is_chief or self.plain_log, desc="train", dynamic_ncols=True)
+    tick = self.began = time.perf_counter()
     while self.step < num_steps and not self.stop.requested:
       batch = self._next_batch()
       if batch is None:
@@ -457,6 +470,9 @@ class _Run:
     now = time.perf_counter()
     scalars["samples_per_s"] = self.config.train.log_every * self.config.batch_size / (now - tick)
     self.bar.set_postfix(loss=f"{scalars['loss']:.4f}")
+    if self.plain_log:
+      print(progress_line(self.step, self.config.train.num_steps, self.start, scalars["loss"],
+                          scalars["samples_per_s"], now - self.began), flush=True)
     self.outputs.training(self.step, scalars, batch)
     return now
 

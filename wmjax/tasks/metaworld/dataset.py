@@ -47,8 +47,8 @@ def camera_keys(count: int) -> tuple[str, ...]:
   return ("observation/image",) + tuple(f"observation/image_{i}" for i in range(1, count))
 
 
-# the spec of the default two views (a dataset of other views lists its camera_keys in
-# config.data.spec); several image keys are tiled left to right into one frame
+# the spec of the default two views (a dataset of another number of views lists its camera_keys
+# in config.data.spec.image_keys); several image keys are tiled left to right into one frame
 oxe.register(oxe.DatasetSpec("metaworld", "wmjax", image_keys=camera_keys(len(DEFAULT_VIEWS)),
                              extra_keys=EXTRAS))
 
