@@ -55,7 +55,7 @@ def get_config(profile: str = "cpu") -> ml_collections.ConfigDict:
       dataset="metaworld", data_dir="~/tensorflow_datasets", frames=3, train_stride=1,
       eval_stride=8, normalization="mean_std", num_workers=0, train_split="train",
       eval_split="test",
-      # the dataset's own spec (two views); data views other than two name their keys here:
+      # the dataset's own spec (two views); data of three or more views names their keys here:
       # --config.data.spec.image_keys="('observation/image', 'observation/image_1', ...)"
       spec=spec_config(action_keys=())))
   config.data.metaworld = ml_collections.ConfigDict(dataclasses.asdict(data))

@@ -241,7 +241,9 @@ def specs_from_config(data: Mapping[str, Any]) -> tuple[DatasetSpec, ...]:
   """Candidate specs of a data config (``config.data`` or a mixture member): ``data.spec`` when
   it names action keys, else the built-in layouts of ``data.dataset`` with every field
   ``data.spec`` sets to other than the schema's default applied to each (e.g.
-  ``--config.data.spec.instruction_key=KEY`` on a built-in dataset); then the overrides
+  ``--config.data.spec.instruction_key=KEY`` on a built-in dataset; a field set to the schema's
+  own default cannot be told from one left alone, and keeps the built-in value); then the
+  overrides
   ``data.image_key`` (str or tuple, ``""`` keeps the spec's), ``data.resize``,
   ``data.missing_image`` and ``data.frame_step`` where set."""
   name = data.get("dataset") or ""
