@@ -310,6 +310,15 @@ def test_inspect_says_the_robot_state_is_not_read():
       "conditioned on actions; spec.extra_keys carries it into windows)")
   carried = oxe.DatasetSpec("mine", action_dim=3, extra_keys=tuple(state_keys(leaves)))
   assert _keys_read(carried, leaves).endswith("; state as extra")
+  # RT-1's and Language-Table's robot state (issue 84.6)
+  vector = F.Tensor(shape=(7,), dtype=np.float32)
+  open_x = oxe.feature_leaves(F.FeaturesDict({"steps": F.Dataset({"observation": {
+      "base_pose_tool_reached": vector, "gripper_closed": F.Tensor(shape=(1,), dtype=np.float32),
+      "gripper_closedness_commanded": vector, "effector_translation": vector,
+      "effector_target_translation": vector, "square_positions": vector}})}))
+  assert state_keys(open_x) == [f"observation/{k}" for k in (
+      "base_pose_tool_reached", "effector_target_translation", "effector_translation",
+      "gripper_closed")]
   assert _keys_read(spec, {"observation/image": features["steps"]["observation"]["image"]}
                     ).endswith("; state none")
 

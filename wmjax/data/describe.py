@@ -66,12 +66,17 @@ def builtin_spec(name: str, features) -> oxe.DatasetSpec | None:
   return None
 
 
+STATE_NAMES = r"state|proprio|pose|effector|joint|qpos|qvel|eef|gripper_closed$"
+
+
 def state_keys(leaves) -> list[str]:
   """The per-step robot state features among ``leaves`` (:func:`oxe.feature_leaves`): numeric
-  step keys whose name says ``state`` or ``proprio`` (``observation/state``,
-  ``observation/gripper_state``)."""
+  step keys whose name says ``state``, ``proprio``, ``pose``, ``effector``, ``joint``, ``qpos`` /
+  ``qvel``, ``eef`` or ``gripper_closed`` (``observation/state``, Bridge; RT-1's
+  ``observation/base_pose_tool_reached`` and ``gripper_closed``; Language-Table's
+  ``observation/effector_translation`` and ``effector_target_translation``)."""
   return sorted(k for k, f in leaves.items() if not k.startswith("episode_metadata/")
-                and re.search("state|proprio", k.split("/")[-1])
+                and re.search(STATE_NAMES, k.split("/")[-1])
                 and not oxe.is_image_feature(f) and np.dtype(f.np_dtype).kind in "fiub")
 
 
