@@ -32,6 +32,7 @@ from wmjax.eval.video import frame_grid, write_png
 from wmjax.frames import to_uint8
 from wmjax.tasks.metaworld import simulator
 from wmjax.tasks.metaworld.dataset import MetaWorld, MetaWorldConfig, run_episode
+from wmjax.tasks.metaworld.metrics import view_metrics
 from wmjax.tasks.metaworld.reader import ArmReader
 
 # the policies compared when none are named: the expert at four noise levels spread over the
@@ -195,7 +196,9 @@ def arm_metrics(model, reader: ArmReader, frames, actions, ee_px, state, out_png
                                - read_out["per_view"][..., 1, 2:5], axis=-1)
     result[name] = {"ee_px_error": ee.mean(0).tolist(), "object_error_cm": obj.mean(0).tolist(),
                     "view_hand_gap_cm": gap.mean(0).tolist(),
-                    "ee_px_error_stderr": (ee.std(0, ddof=1) / np.sqrt(n)).tolist()}
+                    "ee_px_error_stderr": (ee.std(0, ddof=1) / np.sqrt(n)).tolist(),
+                    **{k: v.mean(0).tolist() for k, v in view_metrics(
+                        video[:, generated], frames[:, generated], {}).items() if "mse" in k}}
   if out_png:
     rows = [v for i in range(min(4, n)) for v in (frames[i], pred[i])]
     write_png(out_png, frame_grid(rows))
