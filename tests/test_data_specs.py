@@ -370,6 +370,13 @@ def test_damaged_shards_are_refused_before_anything_is_written(fractal, tmp_path
   one_line_error(capsys, ["data", "inspect", str(shard.parent)], empty)
   one_line_error(capsys, ["data", "convert", str(shard.parent), str(tmp_path / "out")], empty)
   assert sorted(os.listdir(tmp_path)) == ["tfrecord"]
+  # cut in half: its size looks right, reading it fails: one line, and no directory left behind
+  shard = _damaged_copy(tfrecord_dir, tmp_path / "cut", _cut_in_half)
+  cut = r"the data is damaged: a TFRecord shard is cut short or corrupted"
+  one_line_error(capsys, ["data", "inspect", str(shard.parent)], cut)
+  one_line_error(capsys, ["data", "convert", str(shard.parent), str(tmp_path / "new" / "out")],
+                 "truncated TFRecord record")
+  assert sorted(os.listdir(tmp_path)) == ["cut", "tfrecord"]
   for damage, problem in ((_emptied, r"is empty \(0 bytes\)"),
                           (_cut_in_half, r"is not a readable ArrayRecord file"),
                           (_without_records, "holds 0 episodes")):

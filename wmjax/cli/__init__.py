@@ -119,3 +119,11 @@ def main(argv: list[str] | None = None) -> int:
     message = " ".join(str(e).split()) or type(e).__name__
     print(f"{args.command_parser.prog}: {message} (--debug shows the traceback)", file=sys.stderr)
     return 2
+  except Exception as e:  # TensorFlow's DataLossError, without importing TensorFlow to name it
+    if debug or type(e).__name__ != "DataLossError":
+      raise
+    lines = str(e).strip().splitlines()
+    print(f"{args.command_parser.prog}: the data is damaged: a TFRecord shard is cut short or "
+          f"corrupted ({lines[0] if lines else 'DataLossError'}); copy, convert or import it "
+          f"again (--debug shows the traceback)", file=sys.stderr)
+    return 2

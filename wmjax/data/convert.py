@@ -11,6 +11,7 @@ is written.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import struct
@@ -55,6 +56,7 @@ def convert_to_array_record(src: epath.PathLike, dst: epath.PathLike) -> epath.P
   tmp = dst.parent / f".{dst.name}.incomplete"
   if tmp.exists():
     shutil.rmtree(tmp)
+  made = [p for p in (dst.parent, *dst.parent.parents) if not p.exists()]  # innermost first
   tmp.mkdir(parents=True)
   try:
     for path in src.iterdir():
@@ -69,5 +71,8 @@ def convert_to_array_record(src: epath.PathLike, dst: epath.PathLike) -> epath.P
     tmp.rename(dst)
   except BaseException:
     shutil.rmtree(tmp, ignore_errors=True)
+    for parent in made:  # the directories made for dst: a failure leaves nothing behind
+      with contextlib.suppress(OSError):
+        parent.rmdir()
     raise
   return dst
