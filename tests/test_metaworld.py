@@ -2,6 +2,10 @@
 replay, the reader's round trip and the command line's one-line errors."""
 
 import dataclasses
+import os
+import subprocess
+import sys
+import types
 
 import numpy as np
 import pytest
@@ -40,10 +44,12 @@ def test_metaworld_evaluation_start_states_are_held_out_from_training():
 
 @pytest.fixture(scope="module")
 def tiny_dataset(tmp_path_factory):
-  return dataset.prepare(str(tmp_path_factory.mktemp("metaworld")), TINY)
+  # simulated in spawned processes: an EGL context in the test process would crash it once a
+  # later test module imports TensorFlow
+  return dataset.prepare(str(tmp_path_factory.mktemp("metaworld")), TINY, workers=2)
 
 
-def test_episodes_hold_both_cameras_side_by_side_and_replay_exactly(tiny_dataset):
+def test_episodes_hold_both_cameras_side_by_side_and_replay_exactly(tiny_dataset, tmp_path):
   source = ArrayRecordEpisodes(tiny_dataset, "train")
   replay = ("observation/sim_state",)  # read on demand, not carried into training windows
   source = ArrayRecordEpisodes(tiny_dataset, "train", dataclasses.replace(
@@ -56,18 +62,39 @@ def test_episodes_hold_both_cameras_side_by_side_and_replay_exactly(tiny_dataset
   assert not np.array_equal(views[0], views[1])
   noise = [float(source.episode(i).extras["policy_noise"][0]) for i in range(3)]
   assert noise == list(TINY.episode_noise(3))
-  # the stored simulator state and action give the next step's state
-  sim = simulator.ArmSimulator(TINY.task, TINY.views, TINY.image_size, TINY.action_repeat)
-  try:
-    sim.reset(episode.extras["start_state"][0])
-    np.testing.assert_allclose(sim.sim_state(), episode.extras["sim_state"][0], atol=1e-6)
-    sim.restore(episode.extras["sim_state"][1])
-    sim.step(episode.actions[1])
-    np.testing.assert_allclose(sim.state(), episode.extras["state"][2], atol=1e-5)
-    np.testing.assert_array_equal(simulator.ArmSimulator.render(sim)[0],
-                                  decode_image(episode.images[2], None)[:, :16])
-  finally:
-    sim.close()
+  # the stored simulator state and action give the next step's state: checked in a fresh
+  # process (MuJoCo's EGL crashes beside TensorFlow, which other test modules load)
+  np.savez(tmp_path / "episode.npz", start=episode.extras["start_state"][0],
+           sim_state=episode.extras["sim_state"], actions=episode.actions,
+           state=episode.extras["state"], image=decode_image(episode.images[2], None)[:, :16])
+  replay = subprocess.run([sys.executable, "-c", REPLAY, str(tmp_path / "episode.npz")],
+                          capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+  assert replay.returncode == 0 and "replayed" in replay.stdout, replay.stderr[-2000:]
+
+
+
+def test_the_simulator_refuses_a_process_with_tensorflow(monkeypatch):
+  monkeypatch.setitem(sys.modules, "tensorflow", types.ModuleType("tensorflow"))
+  with pytest.raises(RuntimeError, match="crashes a process that has imported TensorFlow"):
+    simulator.ArmSimulator(TINY.task, TINY.views, TINY.image_size)
+
+
+REPLAY = f"""
+import sys
+import numpy as np
+from wmjax.tasks.metaworld import simulator
+e = np.load(sys.argv[1])
+sim = simulator.ArmSimulator({TINY.task!r}, {TINY.views!r}, {TINY.image_size}, {TINY.action_repeat})
+sim.reset(e["start"])
+np.testing.assert_allclose(sim.sim_state(), e["sim_state"][0], atol=1e-6)
+sim.restore(e["sim_state"][1])
+sim.step(e["actions"][1])
+np.testing.assert_allclose(sim.state(), e["state"][2], atol=1e-5)
+np.testing.assert_array_equal(sim.render()[0], e["image"])
+sim.close()
+print("replayed")
+"""
 
 
 def test_the_config_reads_the_dataset_as_two_views():

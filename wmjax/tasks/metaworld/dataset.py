@@ -27,6 +27,7 @@ import dataclasses
 import functools
 import itertools
 import multiprocessing
+import sys
 from concurrent import futures
 
 import numpy as np
@@ -209,15 +210,17 @@ class MetaWorld(synthetic.SyntheticBuilder):
   def episodes(self, count, rng):
     states, noise, seeds = _draws(self.params, count, rng)
     draws = list(zip(states, noise, seeds))
-    if self.workers == 1 or count < 2:
+    # in this process unless TensorFlow is loaded here (MuJoCo's EGL crashes beside it)
+    if self.workers == 1 and "tensorflow" not in sys.modules:
       yield from _simulate(self.params, draws)
       return
-    chunks = [draws[i::self.workers] for i in range(self.workers)]  # every worker one simulator
-    with futures.ProcessPoolExecutor(self.workers,
+    workers = max(1, min(self.workers, count))
+    chunks = [draws[i::workers] for i in range(workers)]  # every worker one simulator
+    with futures.ProcessPoolExecutor(workers,
                                      mp_context=multiprocessing.get_context("spawn")) as pool:
       done = list(pool.map(_simulate, itertools.repeat(self.params), chunks))
     for index in range(count):  # back in the order of the draws
-      yield done[index % self.workers][index // self.workers]
+      yield done[index % workers][index // workers]
 
   @classmethod
   def check_can_write(cls):

@@ -18,13 +18,16 @@ Actions are MetaWorld's: ``[dx, dy, dz, grip]`` in ``[-1, 1]``, the hand's targe
 
 Importing this module sets ``MUJOCO_GL=egl`` unless it is set: MuJoCo picks its OpenGL platform
 when it is first imported, so import this module (or set the variable) before ``mujoco`` or
-``metaworld`` is imported elsewhere.
+``metaworld`` is imported elsewhere. MuJoCo's EGL context crashes the process (a segmentation
+fault) where TensorFlow has been imported: :class:`ArmSimulator` refuses to start there, and the
+dataset builder simulates in spawned worker processes instead.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 from typing import Callable
 
 import numpy as np
@@ -111,6 +114,9 @@ class ArmSimulator:
   def __init__(self, task: str, views=("topview", "gripperPOV"), image_size: int = 48,
                action_repeat: int = 4):
     check_task(task)
+    if "tensorflow" in sys.modules:
+      raise RuntimeError("MuJoCo's EGL rendering crashes a process that has imported TensorFlow; "
+                         "simulate in a fresh process (a spawned worker) instead")
     self.views, self.image_size, self.action_repeat = check_views(views), image_size, action_repeat
     import mujoco
     self._mujoco = mujoco
