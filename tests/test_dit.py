@@ -332,7 +332,7 @@ def test_views_share_positions_and_only_the_view_embedding_tells_them_apart():
   tiled = model.clone(views=1)
   no_view = {"params": {k: v for k, v in blind["params"].items() if k != "view_embed"}}
   assert not np.allclose(jit_apply(tiled)(no_view, x, t, a), apply(blind, x), atol=1e-3)
-  with pytest.raises(ValueError, match="by 2 views of whole patches"):
+  with pytest.raises(ValueError, match="must hold 2 views of whole 2-pixel patches"):
     apply(params, x[..., :6, :])
 
 

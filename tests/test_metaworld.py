@@ -2,6 +2,7 @@
 replay, the reader's round trip and the command line's one-line errors."""
 
 import dataclasses
+import json
 import os
 import subprocess
 import sys
@@ -102,6 +103,26 @@ def test_the_config_reads_the_dataset_as_two_views():
   assert config.model.views == 2 and tuple(config.frame_shape) == (48, 96, 3)
   tiled = load_config(str(ROOT / "configs" / "metaworld.py:tiled"))
   assert tiled.model.views == 1 and tuple(tiled.frame_shape) == (48, 96, 3)
+
+
+@pytest.mark.slow
+def test_the_profile_trains_and_evaluates_two_views(tiny_dataset, tmp_path):
+  """configs/metaworld.py at test size: two views side by side, the multi-view network, training's
+  evaluation with per-view metrics."""
+  data_dir = os.path.dirname(os.path.dirname(os.path.dirname(tiny_dataset)))  # DIR/name/cfg/ver
+  workdir = tmp_path / "run"
+  overrides = [f"data.data_dir={data_dir!r}", "data.metaworld.train_episodes=3",
+               "data.metaworld.test_episodes=2", "data.metaworld.episode_length=4",
+               "data.metaworld.image_size=16", "frame_shape=(16, 32, 3)", "model.patch_size=4",
+               "model.depth=2", "model.hidden_size=32", "model.num_heads=2", "batch_size=8",
+               "train.num_steps=2", "optim.total_steps=2", "optim.warmup_steps=1",
+               "train.checkpoint_every=2", "train.eval_every=2", "train.eval_windows=2",
+               "sampling.num_steps=2", "data.eval_stride=1"]
+  assert cli.main(["train", "--config", str(ROOT / "configs" / "metaworld.py"), "--workdir",
+                   str(workdir)] + [f"--config.{o}" for o in overrides]) == 0
+  result = json.loads((workdir / "metrics.json").read_text())
+  assert result["step"] == 2
+  assert {"rollout_view0_mse", "rollout_view1_mse", "copy_last_view1_psnr"} <= set(result)
 
 
 def test_reader_reads_per_view_and_round_trips(tmp_path):

@@ -71,6 +71,7 @@ TRAINED_ELSEWHERE = {
                        "its_latents",
     "rlds.py": "test_data_specs.py::test_own_lerobot_data_from_import_to_evaluation (inspect's "
                "command)",
+    "metaworld.py": "test_metaworld.py::test_the_profile_trains_and_evaluates_two_views",
 }
 
 

@@ -328,9 +328,11 @@ class STDiT(nn.Module):
     p = self.patch_size
     if c != self.in_channels:
       raise ValueError(f"frames must have {self.in_channels} channels, got {c} (shape {x.shape})")
-    if h % p or w % (p * self.views):
-      raise ValueError(f"frame size must be divisible by the patch size {p} (the width by "
-                       f"{self.views} views of whole patches), got {h}x{w}")
+    if h % p or w % p:
+      raise ValueError(f"frame size must be divisible by the patch size {p}, got {h}x{w}")
+    if w % (p * self.views):
+      raise ValueError(f"the frame's width must hold {self.views} views of whole {p}-pixel "
+                       f"patches, got {h}x{w}")
     if n > self.num_frames:
       raise ValueError(f"the model supports at most {self.num_frames} frames, got {n}")
     if tuple(t.shape) != (b, n):
