@@ -108,11 +108,12 @@ def imagine(model, reader: ArmReader, spec: str, start_frames, context_actions, 
   uint8."""
   env = WorldModelEnv.from_model(model, seed=seed)
   env.reset(start_frames, context_actions=context_actions)
-  policies = [_ReaderPolicy(spec, task, reader) for _ in range(len(start_frames))]
+  policies = [simulator.policy_from_spec(spec, task) for _ in range(len(start_frames))]
   rngs = [np.random.default_rng([seed, n]) for n in range(len(start_frames))]
   last = to_uint8(np.asarray(start_frames)[:, -1])
   for _ in range(steps):
-    actions = np.stack([p(frame, r) for p, frame, r in zip(policies, last, rngs)])
+    states = reader.read(last)["state"]  # every episode's newest frame in one batch
+    actions = np.stack([p(state, r) for p, state, r in zip(policies, states, rngs)])
     new, *_ = env.step(actions[:, None])
     last = to_uint8(np.asarray(new)[:, -1])
   return to_uint8(env.video())
