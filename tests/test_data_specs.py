@@ -323,19 +323,19 @@ def test_inspect_says_the_robot_state_is_not_read():
                     ).endswith("; state none")
 
 
-def test_the_readme_inspect_example_is_what_inspect_prints(tmp_path):
-  """The README's `wmjax data inspect` output of a small gridworld, at the README's path: every
+def test_the_documented_inspect_example_is_what_inspect_prints(tmp_path):
+  """docs/data.md's `wmjax data inspect` output of a small gridworld, at the page's path: every
   line of it is printed, in order (its "..." stands for the lines it leaves out)."""
   from wmjax.data.describe import describe
-  readme = (ROOT / "README.md").read_text()
-  example = readme.split("$ wmjax data inspect ", 1)[1].split("```", 1)[0].splitlines()[1:]
+  page = (ROOT / "docs" / "data.md").read_text()
+  example = page.split("$ wmjax data inspect ", 1)[1].split("```", 1)[0].splitlines()[1:]
   builder_dir = gridworld.prepare(str(tmp_path), gridworld.GridworldConfig(
       train_episodes=8, test_episodes=2, episode_length=8))
   printed = describe(open_builder(builder_dir)).replace(str(tmp_path),
                                                         "/root/tensorflow_datasets").splitlines()
   remaining = iter(printed)
   for line in (line for line in example if line.strip() != "..."):
-    assert line in remaining, f"README line not printed (in this order): {line!r}"
+    assert line in remaining, f"docs/data.md line not printed (in this order): {line!r}"
 
 
 def _damaged_copy(builder_dir, destination, damage):
@@ -527,7 +527,7 @@ def test_lerobot_import(tmp_path, version, monkeypatch):
 
 @pytest.mark.slow
 def test_own_lerobot_data_from_import_to_evaluation(tmp_path, capsys):
-  """The README's own-data path as a newcomer runs it: import, inspect, the training command
+  """The own-data path of docs/data.md as a newcomer runs it: import, inspect, the training command
   inspect prints (at tiny widths), evaluate on the held-out split the config names."""
   from wmjax import cli
   src, out, workdir = tmp_path / "src", str(tmp_path / "data"), str(tmp_path / "run")

@@ -1,5 +1,5 @@
-"""The code users copy: the README's library section's Python blocks run, in order, in one
-namespace, as a reader pastes them, and every script in examples/ runs, at tiny settings, on the
+"""The code users copy: the Python blocks of the library page (docs/library.md) run, in order, in
+one namespace, as a reader pastes them, and every script in examples/ runs, at tiny settings, on the
 suite's tiny gridworld model (conftest.py) standing in for the quickstart's, so that none of it
 can rot."""
 
@@ -15,12 +15,9 @@ from conftest import ROOT, gridworld_overrides
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 
-def python_blocks(section: str) -> list[str]:
-  """The ```python blocks of the README's ``## section`` (up to the next ``## `` heading)."""
-  text = (ROOT / "README.md").read_text()
-  start = text.index(f"\n## {section}\n")
-  end = text.find("\n## ", start + 1)
-  return re.findall(r"```python\n(.*?)```", text[start:end if end >= 0 else None], re.S)
+def python_blocks(page: str) -> list[str]:
+  """The ```python blocks of the documentation page ``docs/PAGE``, in order."""
+  return re.findall(r"```python\n(.*?)```", (ROOT / "docs" / page).read_text(), re.S)
 
 
 @pytest.fixture(scope="module")
@@ -35,15 +32,15 @@ def readers_directory(trained_workdir, tmp_path_factory):
 
 
 def test_the_library_section_runs_as_written(readers_directory, monkeypatch):
-  blocks = python_blocks("Using wmjax as a library")
+  blocks = python_blocks("library.md")
   assert len(blocks) >= 5
   monkeypatch.chdir(readers_directory)
   namespace: dict = {}
   for number, block in enumerate(blocks):
     try:
-      exec(compile(block, f"README.md, library block {number}", "exec"), namespace)
+      exec(compile(block, f"docs/library.md, block {number}", "exec"), namespace)
     except Exception as error:
-      raise AssertionError(f"README library block {number} fails:\n{block}") from error
+      raise AssertionError(f"docs/library.md block {number} fails:\n{block}") from error
   # what the blocks say they make
   assert namespace["latents"].shape == (2, 12, 16, 16, 3)     # rollout of the held-out episodes
   assert namespace["env"].video().shape == (2, 9, 16, 16, 3)  # closed loop, 8 steps

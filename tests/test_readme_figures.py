@@ -1,5 +1,7 @@
-"""The README's measured figures are the results files' own: every figure with a decimal point
-in a README paragraph that cites a results file (``benchmarks/RESULTS.md``,
+"""The measured figures of the README and the documentation pages are the results files' own:
+every figure with a decimal point in a paragraph of README.md or docs/*.md (but the generated
+docs/results.md, which tests/test_results_page.py regenerates from its JSON) that cites a results
+file (``benchmarks/RESULTS.md``,
 ``experiments/<study>/RESULTS.md`` or ``experiments/<study>/``) is a number of one of the files it
 cites, so that no figure is quoted without its measurement or edited away from it."""
 
@@ -35,21 +37,28 @@ def _numbers(path) -> set[float]:
   return {float(n) for n in NUMBER.findall(_prose(path.read_text()))}
 
 
-def test_every_figure_the_readme_quotes_is_in_the_results_file_it_cites():
+def _documents() -> list:
+  """README.md and the documentation pages written by hand."""
+  pages = sorted(p for p in (ROOT / "docs").rglob("*.md") if p.name != "results.md")
+  return [ROOT / "README.md"] + pages
+
+
+def test_every_figure_the_documents_quote_is_in_the_results_file_it_cites():
   checked, unfound = 0, []
-  for paragraph in _paragraphs((ROOT / "README.md").read_text()):
+  paragraphs = [p for document in _documents() for p in _paragraphs(document.read_text())]
+  for paragraph in paragraphs:
     files = _cited_files(paragraph)
     if not files:
       continue
-    assert all(f.is_file() for f in files), f"the README cites missing files: {files}"
+    assert all(f.is_file() for f in files), f"a document cites missing files: {files}"
     known = set().union(*(_numbers(f) for f in files))
     for figure in FIGURE.findall(paragraph):
       checked += 1
       if float(figure) not in known:
         unfound.append(f"{figure} (in {[str(f.relative_to(ROOT)) for f in files]}): "
                        f"{' '.join(paragraph.split())[:120]}...")
-  assert checked >= 20, f"only {checked} figures found: has the README's citation form changed?"
-  assert not unfound, "README figures no cited results file holds:\n" + "\n".join(unfound)
+  assert checked >= 20, f"only {checked} figures found: has the citation form changed?"
+  assert not unfound, "figures no cited results file holds:\n" + "\n".join(unfound)
 
 
 def test_a_figure_missing_from_its_file_is_caught(tmp_path):

@@ -90,14 +90,19 @@ def test_recipe_trains_one_step_and_rolls_out(recipe, builders, tmp_path):
   if recipe == "wpe.py":  # every member's statistics travel with the checkpoint
     stats = json.loads((tmp_path / "checkpoints" / "1" / "action_stats" / "metadata").read_text())
     assert sorted(stats["mixture"]) == ["bridge", "fractal20220817_data", "language_table"]
-  if recipe == "bridge.py":  # the evaluation protocols through the VAE (latent L2 on latents)
+  if recipe == "bridge.py":  # the evaluation protocols through the (random, tiny) VAE
     _, results = evaluate_checkpoint(str(tmp_path), split="train", protocols=("short", "long"),
                                      batch_size=2, videos=1)
     # fixture episodes of 5, 3 and 7 steps: 2 windows of 4 frames, 3 whole episodes
     assert (results["short"]["trajectories"], results["long"]["trajectories"]) == (2, 3)
     for protocol in ("short", "long"):
-      for name in ("mse", "psnr", "ssim", "latent_l2"):
+      for name in ("mse", "psnr", "ssim"):
         assert np.isfinite(results[protocol]["model"][name]["mean"]), (protocol, name)
+      # a random VAE's latents have no scale: IRASim's latent L2 is left out, with the reason
+      assert "latent_l2" not in results[protocol]["model"]
+      assert "randomly initialised" in results[protocol]["left_out"][0]
+    report = (tmp_path / "eval" / "train-step1" / "report.md").read_text()
+    assert "latent_l2 left out: the codec is a randomly initialised" in report
     assert (tmp_path / "eval" / "train-step1" / "videos" / "long_000.mp4").exists()
   env = WorldModelEnv.from_model(model)
   frames = np.random.default_rng(0).integers(0, 256, (2, 1) + image_shape, np.uint8)

@@ -1,26 +1,26 @@
 """The ``wmjax`` command line: one module per command group, each parsing its arguments, calling
 the library and printing the result.
 
-  wmjax train --config configs/gridworld.py --workdir DIR [--config.key=value ...]   (train)
-  wmjax evaluate --workdir DIR [--split test] [--protocols short,long,sweep]        (evaluate)
-  wmjax rollout --workdir DIR --frames FILE [FILE ...] --actions FILE --out DIR      (rollout)
-  wmjax eval-policy --workdir DIR [--policy push:0.1 ...] [--reward coverage|...]   (pusht)
-  wmjax eval-policy --workdir DIR --reader DIR [--policy expert:0.2 ...]   (pusht, MetaWorld)
-  wmjax plan --workdir DIR [--candidates 1,5,10,50] [--proposal push:0.2]            (pusht)
-  wmjax clone-policy --workdir DIR --out POLICY [--task reach]                      (policy)
-  wmjax improve --workdir DIR --policy POLICY --out NEW [--rounds 3]                 (policy)
-  wmjax launch --num_processes 2 -- train --config configs/gridworld.py --workdir DIR (launch)
-  wmjax info --config configs/irasim.py:XL [--config.key=value ...]                  (info)
-  wmjax compile --config configs/irasim.py:XL --target h100|v5p:2x2x1|cpu:N          (compile)
-  wmjax data prepare gridworld|pusht|metaworld --data_dir DIR [--task T --views A,B ...] (data)
-  wmjax data convert SRC_BUILDER_DIR DST_DIR
-  wmjax data encode --config FILE --out DIR [--splits train,test]
-  wmjax data stats BUILDER_DIR [--split train] [--recompute]
-  wmjax data inspect BUILDER_DIR
-  wmjax data import lerobot SRC OUT [--camera KEY]
-  wmjax data import irasim SRC OUT [--dataset rt1|bridge|languagetable] [--camera N]
-  wmjax data import wpe SRC OUT [--subsets rt_1,bridge_v2]
-  wmjax import irasim CKPT.pt --workdir DIR [--dataset rt1|bridge] [--weights ema|model] (import)
+    wmjax train --config configs/gridworld.py --workdir DIR [--config.key=value ...]   (train)
+    wmjax evaluate --workdir DIR [--split test] [--protocols short,long,sweep]        (evaluate)
+    wmjax rollout --workdir DIR --frames FILE [FILE ...] --actions FILE --out DIR      (rollout)
+    wmjax eval-policy --workdir DIR [--policy push:0.1 ...] [--reward coverage|...]   (pusht)
+    wmjax eval-policy --workdir DIR --reader DIR [--policy expert:0.2 ...]   (pusht, MetaWorld)
+    wmjax plan --workdir DIR [--candidates 1,5,10,50] [--proposal push:0.2]            (pusht)
+    wmjax clone-policy --workdir DIR --out POLICY [--task reach]                      (policy)
+    wmjax improve --workdir DIR --policy POLICY --out NEW [--rounds 3]                 (policy)
+    wmjax launch --num_processes 2 -- train --config configs/gridworld.py --workdir DIR (launch)
+    wmjax info --config configs/irasim.py:XL [--config.key=value ...]                  (info)
+    wmjax compile --config configs/irasim.py:XL --target h100|v5p:2x2x1|cpu:N          (compile)
+    wmjax data prepare gridworld|pusht|metaworld --data_dir DIR [--task T --views A,B ...] (data)
+    wmjax data convert SRC_BUILDER_DIR DST_DIR
+    wmjax data encode --config FILE --out DIR [--splits train,test]
+    wmjax data stats BUILDER_DIR [--split train] [--recompute]
+    wmjax data inspect BUILDER_DIR
+    wmjax data import lerobot SRC OUT [--camera KEY]
+    wmjax data import irasim SRC OUT [--dataset rt1|bridge|languagetable] [--camera N]
+    wmjax data import wpe SRC OUT [--subsets rt_1,bridge_v2]
+    wmjax import irasim CKPT.pt --workdir DIR [--dataset rt1|bridge] [--weights ema|model] (import)
 
 ``eval-policy`` checks a Push-T or a MetaWorld world model against its simulator; ``plan`` is
 Push-T's. ``clone-policy`` and ``improve`` train a learnable policy on a control task of the

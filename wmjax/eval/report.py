@@ -34,6 +34,8 @@ def markdown_report(results: dict, header: str, task: FrameMetrics | None = None
         m, b = r["model"][metric], r["copy_last"][metric]
         better = "model" if (m["mean"] < b["mean"]) == lower else "copy-last"
         lines.append(f"| {metric}{' ↓' if lower else ' ↑'} | {_cell(m)} | {_cell(b)} | {better} |")
+    for reason in r.get("left_out", ()):
+      lines += ["", f"{reason}."]
     key = task.headline if task and task.headline in r["model"] else "mse"
     curve, base = r["model"][key]["per_frame"], r["copy_last"][key]["per_frame"]
     shown = np.unique(np.linspace(0, len(curve) - 1, min(len(curve), 16)).round().astype(int))

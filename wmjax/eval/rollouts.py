@@ -32,6 +32,20 @@ def _summarize(per_frame: dict[str, np.ndarray]) -> dict[str, dict]:
   return out
 
 
+def latent_l2_left_out(model: LoadedModel) -> str | None:
+  """Why ``latent_l2`` is not scored for ``model``, or None when it is.
+
+  IRASim's latent L2 compares raw values of a codec's space, which means something only where
+  that space has a fixed scale: pixels, patches, a trained VAE's latents. A randomly initialised
+  VAE (``codec.random_vae``) gives latents of an arbitrary scale (tens of thousands where the
+  model's own outputs are clipped near [-1, 1]), so the number would compare nothing."""
+  codec = model.config.get("codec")
+  if codec is not None and codec.get("random_vae"):
+    return (f"latent_l2 left out: the codec is a randomly initialised {codec.random_vae} VAE, "
+            f"whose latents have no fixed scale to compare raw values in")
+  return None
+
+
 @dataclasses.dataclass
 class Outcome:
   """Per-frame metrics ``[E, T']`` (NaN past a trajectory's end) of the model and of the
@@ -40,10 +54,14 @@ class Outcome:
   model: dict[str, np.ndarray]
   copy_last: dict[str, np.ndarray]
   videos: list[tuple[np.ndarray, np.ndarray]]  # (truth, prediction) uint8 [T, H, W, 3]
+  left_out: tuple[str, ...] = ()  # why a metric was not scored, one sentence each
 
   def summary(self) -> dict:
-    return {"model": _summarize(self.model), "copy_last": _summarize(self.copy_last),
-            "trajectories": len(next(iter(self.model.values())))}
+    summary = {"model": _summarize(self.model), "copy_last": _summarize(self.copy_last),
+               "trajectories": len(next(iter(self.model.values())))}
+    if self.left_out:
+      summary["left_out"] = list(self.left_out)
+    return summary
 
 
 def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, context: int,
@@ -64,6 +82,7 @@ def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, 
   per_model: dict[str, list] = {}
   per_copy: dict[str, list] = {}
   videos = []
+  latent_reason = latent_l2_left_out(model)
   for index, lo in enumerate(range(0, len(trajectories), batch_size)):
     take = np.arange(lo, min(lo + batch_size, len(trajectories)))
     padded = np.concatenate([take, np.full(batch_size - len(take), take[-1])])
@@ -94,7 +113,8 @@ def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, 
       candidates.append((per_copy, copy, copy_latents))
     for store, pred, pred_latents in candidates:
       values = metrics.frame_metrics(pred, truth, extras, task)
-      values["latent_l2"] = np.asarray(metrics.latent_l2(pred_latents, truth_latents[:, 1:]))
+      if latent_reason is None:
+        values["latent_l2"] = np.asarray(metrics.latent_l2(pred_latents, truth_latents[:, 1:]))
       for name, value in values.items():
         store.setdefault(name, []).append(np.where(valid, value, np.nan))
     for i in range(len(take)):
@@ -103,4 +123,5 @@ def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, 
         videos.append((batch.frames[i, first:start + n],
                        np.concatenate([batch.frames[i, first:start], predicted[i, :n]])))
   return Outcome({k: np.concatenate(v) for k, v in per_model.items()},
-                 {k: np.concatenate(v) for k, v in per_copy.items()}, videos)
+                 {k: np.concatenate(v) for k, v in per_copy.items()}, videos,
+                 () if latent_reason is None else (latent_reason,))
