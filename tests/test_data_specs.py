@@ -251,18 +251,47 @@ def test_inspect_decodes_instructions_from_tfrecord_too(fractal, capsys):
       capsys.readouterr().out)
 
 
+def test_inspect_on_tfrecord_prints_the_convert_command_before_the_one_that_trains(
+    fractal, tmp_path, capsys):
+  """Training reads ArrayRecord: on a TFRecord dataset inspect's last two commands are the
+  conversion and the training run on its output, and both run as printed."""
+  import shlex
+  tfrecord = fractal[0]
+  printed, command = inspected_command(capsys, tfrecord, str(tmp_path / "run"))
+  lines = printed.splitlines()
+  (at,) = [i for i, line in enumerate(lines) if line.strip().startswith("wmjax data convert")]
+  convert = shlex.split(lines[at])
+  assert convert[:3] == ["wmjax", "data", "convert"] and convert[3] == tfrecord
+  assert at < len(lines) - 1 and f"--config.data.builder_dir={convert[4]}" in command
+  from wmjax import cli
+  from wmjax.config import load_config
+  from wmjax.train.data import build_data
+  assert cli.main(convert[1:]) == 0
+  config = load_config(command[command.index("--config") + 1],
+                       [a.removeprefix("--config.") for a in command if a.startswith("--config.")]
+                       + [f"{k}={v!r}" for k, v in OWN_DATA_TINY.items()])
+  assert len(build_data(config).members[0].train) > 0
+
+
 def test_the_printed_command_follows_the_splits_the_data_has():
-  """A dataset's own test split is held out; a dataset of one split other than train (IRASim's
-  example has only ``test``) is carved into 90 % / 10 %; train alone keeps configs/rlds.py's
-  ``train[:90%]`` / ``train[90%:]``."""
+  """A dataset's own test split is held out; a dataset of one split other than train is carved
+  into 90 % / 10 %; train alone keeps configs/rlds.py's ``train[:90%]`` / ``train[90%:]``; under
+  10 episodes the last one is held out, and one episode (IRASim's Language-Table example: one
+  ``test`` split of one episode) serves both, with a note saying so."""
   from wmjax.config import load_config
   from wmjax.data.describe import split_overrides
   assert split_overrides({"train": 9, "test": 2}) == (
-      "--config.data.train_split=train --config.data.eval_split=test")
-  only_test = split_overrides({"train": 0, "test": 8})
+      "--config.data.train_split=train --config.data.eval_split=test", "")
+  only_test, note = split_overrides({"train": 0, "test": 18})
   assert only_test == ("--config.data.train_split='test[:90%]' "
-                       "--config.data.eval_split='test[90%:]'")
-  assert split_overrides({"train": 5}) == split_overrides({"train": 5, "val": 0}) == ""
+                       "--config.data.eval_split='test[90%:]'") and not note
+  assert split_overrides({"train": 15}) == split_overrides({"train": 15, "val": 0}) == ("", "")
+  assert split_overrides({"train": 5}) == (
+      "--config.data.train_split='train[:-1]' --config.data.eval_split='train[-1:]'",
+      "5 episodes: the last one is held out for evaluation")
+  one, note = split_overrides({"test": 1})
+  assert one == "--config.data.train_split=test --config.data.eval_split=test"
+  assert note.startswith("one episode in all: training and evaluation share it")
   rlds = load_config(str(ROOT / "configs" / "rlds.py"))
   assert (rlds.data.train_split, rlds.data.eval_split) == ("train[:90%]", "train[90%:]")
   overrides = [a.replace("'", "").removeprefix("--config.") for a in only_test.split()]
@@ -331,8 +360,8 @@ def test_the_documented_inspect_example_is_what_inspect_prints(tmp_path):
   example = page.split("$ wmjax data inspect ", 1)[1].split("```", 1)[0].splitlines()[1:]
   builder_dir = gridworld.prepare(str(tmp_path), gridworld.GridworldConfig(
       train_episodes=8, test_episodes=2, episode_length=8))
-  printed = describe(open_builder(builder_dir)).replace(str(tmp_path),
-                                                        "/root/tensorflow_datasets").splitlines()
+  printed = describe(open_builder(builder_dir)).replace(str(tmp_path), "/root/tensorflow_datasets")
+  printed = printed.replace(str(ROOT), "~/wmjax").splitlines()  # the checkout, for the page
   remaining = iter(printed)
   for line in (line for line in example if line.strip() != "..."):
     assert line in remaining, f"docs/data.md line not printed (in this order): {line!r}"
@@ -540,8 +569,9 @@ def test_own_lerobot_data_from_import_to_evaluation(tmp_path, capsys):
   capsys.readouterr()
   assert cli.main(["evaluate", "--workdir", workdir, "--protocols", "long",
                    "--videos", "0"]) == 0
-  results = json.loads((tmp_path / "run" / "eval" / "train[90%:]-step1" / "metrics.json")
+  assert "4 episodes: the last one is held out for evaluation" in printed
+  results = json.loads((tmp_path / "run" / "eval" / "train[-1:]-step1" / "metrics.json")
                        .read_text())
-  # train[90%:] of 4 episodes holds out the last one (3 steps) whole
+  # the last of 4 episodes (3 steps) held out whole
   assert results["long"]["trajectories"] == 1
   assert np.isfinite(results["long"]["model"]["mse"]["mean"])

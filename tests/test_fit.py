@@ -203,11 +203,12 @@ def test_rollout_block_compiles_for_a_target_with_its_memory():
 
 
 @pytest.mark.integration
-@pytest.mark.skipif(sys.platform != "linux", reason="libtpu (the [test] extra) is Linux-only")
+@pytest.mark.skipif(sys.platform != "linux", reason="libtpu (the [tpu] extra) is Linux-only")
 @pytest.mark.slow
 def test_train_step_compiles_for_a_tpu_pod_slice_without_one():
   """A v5p:2x2x1 topology (4 chips, from libtpu on this CPU machine): the sharded step compiles
   for the TPU, attention resolves to the TPU's splash kernel, and the memory is the TPU's."""
+  pytest.importorskip("libtpu", reason="compiling for a TPU topology needs the tpu extra")
   config = tiny_config("gridworld.py", *SMALL, "model.attention_impl='auto'", "mesh=(1, -1, 1)")
   target = fit.parse_target("v5p:2x2x1")
   assert target.platform == "tpu" and len(target.devices) == 4

@@ -302,3 +302,23 @@ def test_the_command_inspect_prints_reads_the_imported_data(tmp_path, capsys, fm
   windows = eval_windows(data, config)
   assert windows["frames"].shape[1:] == (frames, 16, 16, 3)
   assert np.isfinite(windows["actions"]).all() and windows["actions"].shape[2] == dim
+
+
+@pytest.mark.slow
+def test_the_printed_command_runs_as_printed_on_one_episode_from_another_directory(
+    tmp_path, capsys, monkeypatch):
+  """IRASim's Language-Table example: one ``test`` split of one episode. ``inspect`` says that
+  training and evaluation share it, and its command runs as printed (tiny widths added) from a
+  directory that is not the checkout, then ``evaluate`` reads the same split."""
+  from wmjax import cli
+  src = write_irasim(tmp_path, "languagetable", {"test": (6,)})
+  out = _import(capsys, "irasim", src, tmp_path / "data")
+  elsewhere = tmp_path / "elsewhere"
+  elsewhere.mkdir()
+  monkeypatch.chdir(elsewhere)
+  printed, command = inspected_command(capsys, out, "run")
+  assert "one episode in all: training and evaluation share it" in printed
+  assert "--config.data.train_split=test" in command and "--config.data.eval_split=test" in command
+  assert cli.main(command[1:] + [f"--config.{k}={v!r}" for k, v in OWN_DATA_TINY.items()]) == 0
+  assert cli.main(["evaluate", "--workdir", "run", "--protocols", "long", "--videos", "0"]) == 0
+  assert (elsewhere / "run" / "eval" / "test-step1" / "metrics.json").is_file()

@@ -18,7 +18,7 @@ pytestmark = pytest.mark.integration
 # Bottom to top; a module belongs to the layer of its longest listed prefix. Push-T's evaluation
 # against its simulator uses the generic evaluation tools, so it sits beside them.
 LAYERS = (
-    ("wmjax", "wmjax.frames", "wmjax.errors", "wmjax.parallel", "wmjax.launch", "wmjax.config",
+    ("wmjax", "wmjax.platforms", "wmjax.frames", "wmjax.errors", "wmjax.parallel", "wmjax.launch", "wmjax.config",
      "wmjax.registry"),
     ("wmjax.nn", "wmjax.diffusion", "wmjax.data"),
     ("wmjax.codecs", "wmjax.model", "wmjax.policy"),

@@ -484,9 +484,8 @@ from jax._src import xla_bridge
 started = []
 real = xla_bridge.make_tpu_client
 xla_bridge.make_tpu_client = lambda *a, **k: started.append(1) or real(*a, **k)
-if sys.argv[1] == "skip":
-  from wmjax.cli import common
-  common.skip_absent_tpu()
+if sys.argv[1] == "wmjax":
+  import wmjax  # noqa: F401
 import jax
 jax.devices()
 print("started" if started else "not started")
@@ -497,7 +496,8 @@ print("started" if started else "not started")
 @pytest.mark.slow
 def test_a_machine_without_tpu_chips_starts_no_tpu_client():
   """libtpu (the test extra) makes JAX start a TPU client everywhere, and libtpu then prints
-  INVALID_ARGUMENT lines on a CPU host; the CLI leaves the TPU out when the machine has none."""
+  INVALID_ARGUMENT lines on a CPU host; importing wmjax leaves the TPU out when the machine has
+  none (every wmjax command, experiment script and notebook imports it first)."""
   pytest.importorskip("libtpu")
   from jax._src import hardware_utils
   if hardware_utils.num_available_tpu_chips_and_device_id()[0]:
@@ -506,7 +506,7 @@ def test_a_machine_without_tpu_chips_starts_no_tpu_client():
   probe = [sys.executable, "-c", _TPU_PROBE]
   run = lambda mode: subprocess.run(probe + [mode], env=env, capture_output=True, text=True,  # noqa: E731
                                     check=True)
-  assert run("plain").stdout.strip() == "started"  # what the CLI prevents
-  skipped = run("skip")
+  assert run("plain").stdout.strip() == "started"  # what importing wmjax prevents
+  skipped = run("wmjax")
   assert skipped.stdout.strip() == "not started"
   assert "INVALID_ARGUMENT" not in skipped.stderr and "libtpu" not in skipped.stderr

@@ -93,6 +93,38 @@ def test_kill_and_resume_is_bit_identical(data_dir, tmp_path):
   assert not (straight / "rollout.gif").exists() and not (straight / "samples").exists()
 
 
+@pytest.mark.slow
+def test_resume_on_another_slice_size_reads_the_same_batches(data_dir, tmp_path):
+  """A preempted job resumed on a smaller slice: trained with FSDP over 8 devices to step 4,
+  resumed over 4 devices (another mesh) to step 8. It reads the batches an uninterrupted
+  8-device run reads, step by step, and ends where that run ends but for the reduction order."""
+  overrides = _overrides(data_dir, batch_size=8, **{"train.checkpoint_every": 4})
+  eight, four = (1, 8, 1), (1, 4, 1)
+  straight, moved = tmp_path / "straight", tmp_path / "moved"
+  uninterrupted = subprocess.Popen(
+      _train_command(straight, overrides + [f"mesh={eight}"]), cwd=ROOT, env=_env(8),
+      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+  subprocess.run(_train_command(moved, overrides + [f"mesh={eight}", "train.num_steps=4"]),
+                 cwd=ROOT, env=_env(8), check=True, capture_output=True, text=True)
+  resumed = subprocess.run(_train_command(moved, overrides + [f"mesh={four}"]), cwd=ROOT,
+                           env=_env(4), capture_output=True, text=True)
+  assert resumed.returncode == 0, resumed.stderr[-3000:]
+  assert "resumed from step 4" in resumed.stdout
+  assert json.loads((moved / "config.json").read_text())["mesh"] == list(four)
+  _, errors = uninterrupted.communicate(timeout=300)
+  assert uninterrupted.returncode == 0, errors[-3000:]
+
+  assert _batches(straight) == _batches(moved) and sorted(_batches(moved)) == list(range(1, 9))
+  losses = [{r["step"]: r["loss"] for r in map(json.loads, open(w / "metrics.jsonl"))}
+            for w in (straight, moved)]
+  for step in range(1, 9):
+    np.testing.assert_allclose(losses[1][step], losses[0][step], rtol=1e-5, err_msg=step)
+  a, b = _flatten(_state(straight, 8)), _flatten(_state(moved, 8))
+  assert a.keys() == b.keys()
+  for key in a:
+    np.testing.assert_allclose(b[key], a[key], rtol=1e-4, atol=1e-6, err_msg=key)
+
+
 def _flatten(tree):
   return {jax.tree_util.keystr(path): np.asarray(leaf)
           for path, leaf in jax.tree_util.tree_leaves_with_path(tree)}

@@ -585,6 +585,14 @@ def tiny_profile(config: ml_collections.ConfigDict, vae_layout: str, name: str
 # Config files and overrides.
 
 
+def shipped_config(name: str) -> str:
+  """The config file ``configs/NAME`` of the checkout wmjax is installed from, as an absolute
+  path, so that a command printed with it runs from any directory; ``configs/NAME`` where the
+  package was installed without its checkout (a wheel ships no ``configs/``)."""
+  path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "configs", name)
+  return path if os.path.isfile(path) else os.path.join("configs", name)
+
+
 def split_overrides(argv: Sequence[str]) -> tuple[list[str], list[str]]:
   """``(overrides, rest)`` of command-line arguments: ``--config.KEY=VALUE`` are overrides (the
   one syntax of the CLI, the benchmarks and the experiments); a bare ``--config.KEY`` is an

@@ -58,7 +58,7 @@ import ml_collections
 import numpy as np
 
 from wmjax.checkpoints import torch_file
-from wmjax.config import load_config
+from wmjax.config import load_config, shipped_config
 from wmjax.data import irasim as data_irasim
 from wmjax.data.stats import ActionStats
 from wmjax.model import WorldModel
@@ -76,8 +76,7 @@ DATASETS = {"rt1": "rt1", "bridge": "bridge", "languagetable": "language_table",
 ACTION_SCALES = {"rt1": (data_irasim.action_scale("3d"), 6),
                  "bridge": (data_irasim.action_scale("3d"), 6)}
 WEIGHTS = ("ema", "model")
-DEFAULT_CONFIG = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(
-    os.path.abspath(__file__)))), "configs", "irasim.py")
+DEFAULT_CONFIG = shipped_config("irasim.py")
 MAX_LISTED = 5  # mismatches named in an error
 
 

@@ -103,8 +103,6 @@ def main(argv: list[str] | None = None) -> int:
           + ("; config overrides look like --config.KEY=VALUE" if args.takes_overrides else ""))
   if args.host_only:
     common.host_only()
-  else:
-    common.skip_absent_tpu()
   from wmjax.config import ConfigError
   from wmjax.errors import RunError
   try:

@@ -57,36 +57,6 @@ def checkpoint_args(parser: argparse.ArgumentParser, dtype: bool = True) -> None
                         help="parameters' dtype for inference (compute: --config.model.dtype)")
 
 
-def skip_absent_tpu() -> bool:
-  """Leave the TPU out of JAX's platform search on a machine without TPU chips, unless
-  ``JAX_PLATFORMS`` or ``JAX_FORCE_TPU_INIT`` asks for it; whether it was left out.
-
-  With ``libtpu`` installed (the test extra brings it, to compile for TPU topologies on any
-  machine) JAX tries to start a TPU client on every machine, and libtpu then prints lines of
-  ``INVALID_ARGUMENT`` errors about worker hostnames on a CPU or GPU host. Compiling for a TPU
-  topology (``wmjax compile --target v5p:2x2x1``) loads libtpu by itself and is not affected.
-  The platform stays known (TPU lowering rules still register); its factory reports no chips,
-  as JAX's own search does for CUDA without a visible GPU. The chip count and the factory
-  registry are JAX internals: if they move, nothing is left out.
-  """
-  if os.environ.get("JAX_PLATFORMS") or os.environ.get("JAX_FORCE_TPU_INIT"):
-    return False
-  try:
-    from jax._src import hardware_utils, xla_bridge
-    if hardware_utils.num_available_tpu_chips_and_device_id()[0] > 0:
-      return False
-    registration = xla_bridge._backend_factories["tpu"]
-    xla_bridge.register_backend_factory("tpu", _no_tpu_chips, priority=registration.priority,
-                                        fail_quietly=True)
-    return True
-  except (ImportError, AttributeError, KeyError, RuntimeError):
-    return False
-
-
-def _no_tpu_chips():
-  raise RuntimeError("this machine has no TPU chips")
-
-
 def host_only() -> None:
   """Keep JAX off accelerators (``JAX_PLATFORMS=cpu``) before any backend starts: a command that
   does CPU work must not take a GPU's memory from a training job beside it."""

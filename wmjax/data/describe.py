@@ -10,6 +10,7 @@ import re
 
 import numpy as np
 
+from wmjax.config import shipped_config
 from wmjax.data import oxe
 
 
@@ -119,18 +120,43 @@ def _instruction_lines(builder, spec: oxe.DatasetSpec) -> list[str]:
     return [f"instructions: not read ({e})"]
 
 
-def split_overrides(splits) -> str:
+# fewer episodes than this in a dataset's one split: hold out its last episode instead of 10 %
+FEW_EPISODES = 10
+
+
+def split_overrides(splits) -> tuple[str, str]:
   """The ``data.train_split`` / ``data.eval_split`` overrides of configs/rlds.py (default
   ``train[:90%]`` / ``train[90%:]``) that follow the splits a dataset has (``splits``: name ->
-  number of episodes): its own ``test`` split held out where it has ``train`` and ``test``; the
-  last 10 % of episodes of its one split where it has one other than ``train``."""
-  present = [name for name, count in splits.items() if count]
+  number of episodes), and a note where training and evaluation must share data: its own
+  ``test`` split held out where it has ``train`` and ``test``; of a dataset with one split, the
+  last 10 % of its episodes, its last episode when it has fewer than :data:`FEW_EPISODES`, and
+  the one episode itself for both when it has one. Returns ``(overrides, note)``."""
+  present = {name: count for name, count in splits.items() if count}
   if {"train", "test"} <= set(present):
-    return "--config.data.train_split=train --config.data.eval_split=test"
-  if len(present) == 1 and present != ["train"]:
-    (only,) = present
-    return f"--config.data.train_split='{only}[:90%]' --config.data.eval_split='{only}[90%:]'"
-  return ""
+    return "--config.data.train_split=train --config.data.eval_split=test", ""
+  if len(present) != 1:
+    return "", ""
+  ((only, count),) = present.items()
+  if count == 1:
+    return (f"--config.data.train_split={only} --config.data.eval_split={only}",
+            "one episode in all: training and evaluation share it (the evaluation is then no "
+            "held-out measurement)")
+  if count < FEW_EPISODES:
+    return (f"--config.data.train_split='{only}[:-1]' --config.data.eval_split='{only}[-1:]'",
+            f"{count} episodes: the last one is held out for evaluation")
+  if only == "train":
+    return "", ""
+  return f"--config.data.train_split='{only}[:90%]' --config.data.eval_split='{only}[90%:]'", ""
+
+
+def _convert_first(builder) -> tuple[list[str], str]:
+  """For a TFRecord dataset, the lines that convert it to ArrayRecord (training reads episodes
+  at random) and the builder directory its training command names then."""
+  if builder.info.file_format.value == "array_record":
+    return [], str(builder.data_dir)
+  converted = str(builder.data_dir).rstrip("/") + "_arrayrecord"
+  return ["", f"stored as {builder.info.file_format.value}: training reads ArrayRecord, so "
+              f"convert it first:", f"  wmjax data convert {builder.data_dir} {converted}"], converted
 
 
 def describe(builder) -> str:
@@ -146,8 +172,13 @@ def describe(builder) -> str:
   spec = builtin_spec(info.name, info.features)
   builtin = spec is not None
   spec = spec or suggest_spec(info.name, info.features)
-  splits = split_overrides({name: split.num_examples for name, split in info.splits.items()})
-  lines += ["", _keys_read(spec, leaves)] + _instruction_lines(builder, spec)
+  splits, split_note = split_overrides({name: split.num_examples
+                                         for name, split in info.splits.items()})
+  convert, builder_dir = _convert_first(builder)
+  rlds = shipped_config("rlds.py")
+  lines += ["", _keys_read(spec, leaves)] + _instruction_lines(builder, spec) + convert
+  if split_note:
+    lines += ["", split_note]
   if builtin:
     others = [c for c in cameras if c not in spec.image_keys]
     lines += ["", f"this is the built-in {spec.name!r} spec ({spec.action_dim}-dim actions"
@@ -156,11 +187,11 @@ def describe(builder) -> str:
               + (f"; others: {', '.join(others)}, chosen with --config.data.image_key" if others
                  else "") + "); train on it with",
               " ".join(filter(None, [
-                  f"  wmjax train --config configs/rlds.py --workdir WORKDIR "
-                  f"--config.data.builder_dir={builder.data_dir} --config.data.dataset={spec.name} "
+                  f"  wmjax train --config {rlds} --workdir WORKDIR "
+                  f"--config.data.builder_dir={builder_dir} --config.data.dataset={spec.name} "
                   f"--config.model.action_dim={spec.action_dim}", splits]))]
     return "\n".join(lines)
-  lines += ["", "suggested spec (check it; config.data.spec of configs/rlds.py, or overrides):"]
+  lines += ["", f"suggested spec (check it; config.data.spec of {rlds}, or overrides):"]
   for key, value in spec.to_dict().items():
     if key in ("name", "layout"):
       continue
@@ -169,8 +200,9 @@ def describe(builder) -> str:
     else:
       lines.append(f"  {key} = {tuple(value) if isinstance(value, list) else value!r}")
   instruction = spec.instruction_key or "''"
-  lines += ["", "as overrides of configs/rlds.py:",
-            f"  --config.data.dataset={info.name} "
+  lines += ["", f"train on it with these overrides of {rlds}:",
+            f"  wmjax train --config {rlds} --workdir WORKDIR "
+            f"--config.data.builder_dir={builder_dir} --config.data.dataset={info.name} "
             f"--config.data.spec.image_keys=\"{tuple(spec.image_keys)!r}\" "
             f"--config.data.spec.instruction_key={instruction} "
             f"--config.data.spec.action_keys=\"{tuple(spec.action_keys)!r}\" "

@@ -222,10 +222,14 @@ class ArrayRecordEpisodes:
     self.spec = resolve(builder, spec)
     self._length = builder.info.splits[self._tfds_split].num_examples
     if not self._length:
-      total = builder.info.splits[split.split("[")[0]].num_examples
+      base = split.split("[")[0]
+      total = builder.info.splits[base].num_examples
+      fix = (f"with one episode train and evaluate on it: data.train_split={base!r} and "
+             f"data.eval_split={base!r}" if total == 1 else
+             f"with few episodes name them, e.g. data.train_split='{base}[:-1]' and "
+             f"data.eval_split='{base}[-1:]'")
       raise ValueError(f"the split {split!r} of {builder_dir} is empty ({total} episodes in "
-                       f"{split.split('[')[0]!r}); with few episodes name them, e.g. "
-                       f"data.train_split='train[:-1]' and data.eval_split='train[-1:]'")
+                       f"{base!r}); {fix}")
     self._flag_keys = [k for k, f in oxe.feature_leaves(builder.info.features).items()
                        if k.startswith("episode_metadata/has_") and np.dtype(f.np_dtype) == bool]
     self._source = None

@@ -143,8 +143,8 @@ def parse_target(spec: str) -> Target:
     try:
       topology = topologies.get_topology_desc(topology_name=spec, platform="tpu")
     except Exception as e:
-      raise ValueError(f"target {spec!r} needs libtpu (pip install 'jax[tpu]=={jax.__version__}'"
-                       f"; no TPU needed) and a valid topology: {e}") from e
+      raise ValueError(f"target {spec!r} needs libtpu (pip install -e \".[tpu]\" or 'jax[tpu]=="
+                       f"{jax.__version__}'; no TPU needed) and a valid topology: {e}") from e
     return Target(spec, "tpu", tuple(topology.devices), TPU_MEMORY[generation])
   raise ValueError(f"unknown compile target {spec!r}; expected {forms}")
 
