@@ -208,12 +208,18 @@ def test_load_model_reads_ema_or_raw_parameters(workdir):
 
 @pytest.mark.integration
 @pytest.mark.slow
-def test_evaluate_command_writes_metrics_report_and_videos(workdir, tmp_path):
+def test_evaluate_command_writes_metrics_report_and_videos(workdir, tmp_path, capsys):
   out = tmp_path / "eval"
   assert cli.main(["evaluate", "--workdir", workdir, "--out", str(out), "--sets", "2",
                    "--videos", "2", "--sweep_frames", "4",
                    "--frame_features", "test_evaluate:mean_colour_features",
                    "--clip_features", "test_evaluate:colour_trajectory_features"]) == 0
+  # stderr is no terminal here (as in a batch job's log): plain progress lines, no bars
+  printed = capsys.readouterr()
+  for line in ("evaluate short: 4/4 trajectories", "evaluate long: 2/2 trajectories",
+               "evaluate sweep: 8/8 rollout sets"):
+    assert line in printed.out, line
+  assert "\r" not in printed.out + printed.err
   results = json.loads((out / "metrics.json").read_text())
   short, long = results["short"], results["long"]
   assert short["horizon"] == 5 and short["trajectories"] == 2 * 2  # 12 steps -> 2 windows of 6

@@ -18,8 +18,8 @@ pytestmark = pytest.mark.integration
 # Bottom to top; a module belongs to the layer of its longest listed prefix. Push-T's evaluation
 # against its simulator uses the generic evaluation tools, so it sits beside them.
 LAYERS = (
-    ("wmjax", "wmjax.platforms", "wmjax.frames", "wmjax.errors", "wmjax.parallel", "wmjax.launch", "wmjax.config",
-     "wmjax.registry"),
+    ("wmjax", "wmjax.platforms", "wmjax.progress", "wmjax.frames", "wmjax.errors",
+     "wmjax.parallel", "wmjax.launch", "wmjax.config", "wmjax.registry"),
     ("wmjax.nn", "wmjax.diffusion", "wmjax.data"),
     ("wmjax.codecs", "wmjax.model", "wmjax.policy"),
     ("wmjax.rollout", "wmjax.env", "wmjax.interactive"),

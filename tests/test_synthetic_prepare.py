@@ -25,6 +25,9 @@ def test_two_processes_preparing_one_dataset_both_succeed(tmp_path):
   for job, (out, err) in zip(jobs, results):
     assert job.returncode == 0, err[-2000:]
     assert "downloaded and prepared" not in out + err  # TFDS's line: nothing is downloaded
+  # to a pipe, not a terminal: plain progress lines of the one that wrote it, no TFDS bars
+  assert all("\r" not in out + err and "Generating splits" not in err for out, err in results)
+  assert sum("gridworld train: 4/4 episodes" in out for out, _ in results) == 1
   paths = {out.strip().splitlines()[-1] for out, _ in results}
   assert len(paths) == 1
   (path,) = paths
@@ -49,3 +52,16 @@ def test_a_written_dataset_is_found_without_its_builder(tmp_path, monkeypatch):
   os.remove(os.path.join(written, "dataset_info.json"))  # unfinished: prepare builds again
   with pytest.raises(AssertionError, match="builder was constructed"):
     dataset.prepare(str(tmp_path), config)
+
+
+def test_a_bad_split_of_a_generated_dataset_fails_before_generating_it(tmp_path, capsys):
+  """`wmjax train` with a misspelt split on a machine where the gridworld is not yet generated:
+  one line naming the splits, and nothing generated (nor printed) before it."""
+  from conftest import ROOT, one_line_error
+  data_dir = tmp_path / "data"
+  one_line_error(capsys, ["train", "--config", str(ROOT / "configs" / "gridworld.py"),
+                          "--workdir", str(tmp_path / "run"), f"--config.data.data_dir={data_dir!r}",
+                          "--config.data.eval_split='tset'"],
+                 r"config.data.eval_split='tset': the generated gridworld dataset has the splits "
+                 r"\['train', 'test'\]")
+  assert not data_dir.exists() and not (tmp_path / "run").exists()

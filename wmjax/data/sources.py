@@ -27,7 +27,7 @@ import numpy as np
 import tensorflow_datasets as tfds
 
 from wmjax import registry
-from wmjax.data import oxe
+from wmjax.data import oxe, synthetic
 from wmjax.data.rlds import Episode, stack_steps
 from wmjax.data.stats import ActionStats
 
@@ -388,6 +388,11 @@ def dataset_dir(data: ml_collections.ConfigDict) -> str:
   ``config.data.<dataset>``."""
   generated = registry.generated_datasets().get(data.dataset)
   if generated is not None:
+    for key in ("train_split", "eval_split"):  # before minutes of generating it
+      split = data.get(key) or ""
+      if split and split.split("[")[0] not in synthetic.SPLITS:
+        raise ValueError(f"config.data.{key}={split!r}: the generated {data.dataset} dataset has "
+                         f"the splits {list(synthetic.SPLITS)} (slices like 'train[:90%]' too)")
     params = generated.params.from_dict(data.get(data.dataset, {}))
     return generated.prepare(os.path.expanduser(data.data_dir), params)
   oxe.specs_from_config(data)  # an unknown dataset without a spec fails here, clearly

@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
+import logging
 import os
 from typing import Any, Callable, Iterator
 
@@ -26,6 +27,7 @@ import numpy as np
 import tensorflow_datasets as tfds
 
 from wmjax.data.writer import NothingDownloaded, png
+from wmjax.progress import plain
 
 
 @dataclasses.dataclass
@@ -112,6 +114,8 @@ def unmatched_draws(draw: Callable[[int], np.ndarray], count: int, known, exclud
 class SyntheticBuilder(NothingDownloaded, tfds.core.GeneratorBasedBuilder):
   """Base builder; subclasses set ``VERSION`` / ``RELEASE_NOTES`` and implement the hooks."""
 
+  plain_progress = False  # print a line every tenth of a split (:func:`prepare` sets it)
+
   def __init__(self, *, params, **kwargs):
     self.params = params
     super().__init__(config=tfds.core.BuilderConfig(name=params.name), **kwargs)
@@ -183,7 +187,10 @@ class SyntheticBuilder(NothingDownloaded, tfds.core.GeneratorBasedBuilder):
   def _generate_examples(self, split: str):
     rng = stream(self.params.seed, split)
     count = self.episode_count(self.params, split)
+    every = max(1, count // 10)  # a plain progress line every tenth of the split (a log file's)
     for index, episode in enumerate(self.episodes(count, rng)):
+      if self.plain_progress and ((index + 1) % every == 0 or index + 1 == count):
+        print(f"{self.name} {split}: {index + 1}/{count} episodes", flush=True)
       last = len(episode.images) - 1
       steps = [{
           "observation": {"image": png(episode.images[t]),
@@ -222,7 +229,18 @@ def prepare(builder_class: type[SyntheticBuilder], data_dir: str, params, **opti
     return written  # reading needs no builder (nor TensorFlow, which writing does)
   builder_class.check_can_write()  # before a directory or lock is made
   with _one_writer(data_dir, f"{builder_class.name}-{params.name}"):
-    builder = builder_class(params=params, data_dir=data_dir, file_format="array_record",
-                            **options)
+    absl = logging.getLogger("absl")  # TFDS warns of every config it does not list itself
+    level = absl.level
+    absl.setLevel(logging.ERROR)
+    try:
+      builder = builder_class(params=params, data_dir=data_dir, file_format="array_record",
+                              **options)
+    finally:
+      absl.setLevel(level)
+    # TFDS's bars write carriage-return updates a log file cannot read: on a terminal they stay,
+    # elsewhere the builder prints a plain line every tenth of a split instead
+    builder.plain_progress = plain()
+    if builder.plain_progress:
+      tfds.disable_progress_bar()  # for this process: every later bar would write to a log too
     builder.download_and_prepare()
   return os.fspath(builder.data_dir)

@@ -31,6 +31,7 @@ from wmjax.eval.frechet import FrechetDistances
 from wmjax.eval.rollouts import run_rollouts
 from wmjax.eval.trajectories import Trajectories, as_masks, whole_episodes, windows_of
 from wmjax.model import LoadedModel
+from wmjax.progress import Progress
 from wmjax.registry import FrameMetrics
 
 
@@ -52,12 +53,14 @@ def wpe_sweep(model: LoadedModel, trajectories: Trajectories, settings: Sequence
   longest = max(c for c, _ in settings)
   rows = []
   copy = None
+  tracker = Progress("evaluate sweep", len(settings) * num_sets, "rollout sets")
   for c, h in settings:
     set_means: dict[str, list] = {}
     for s in range(num_sets):
       outcome = run_rollouts(model, trajectories, first=longest - c, context=c, horizon=h,
                              rng=jax.random.fold_in(rng, s), batch_size=batch_size,
                              baseline=copy is None, task=task)
+      tracker.update()
       for name, values in outcome.model.items():
         set_means.setdefault(name, []).append(float(np.nanmean(values)))
       copy = copy or {name: float(np.nanmean(v)) for name, v in outcome.copy_last.items()}
@@ -66,6 +69,7 @@ def wpe_sweep(model: LoadedModel, trajectories: Trajectories, settings: Sequence
       mean, stderr = metrics.mean_stderr(values)
       row[name] = {"mean": float(mean), "stderr": float(stderr)}
     rows.append(row)
+  tracker.close()
   return rows
 
 
@@ -101,7 +105,8 @@ def evaluate_protocols(model: LoadedModel, episodes: ArrayRecordEpisodes, *,
     block = min(actions, num_frames - 1)
     outcome = run_rollouts(model, stack(windows), first=0, context=1, horizon=block,
                            rng=jax.random.fold_in(rng, 0), batch_size=batch_size,
-                           keep_videos=keep_videos, frechet=frechet, task=task)
+                           keep_videos=keep_videos, frechet=frechet, task=task,
+                           progress="evaluate short")
     results["short"] = dict(outcome.summary(), context=1, horizon=block, actions=actions)
     if frechet is not None:
       results["short"]["frechet"] = frechet.result()
@@ -111,7 +116,7 @@ def evaluate_protocols(model: LoadedModel, episodes: ArrayRecordEpisodes, *,
     trajectories = stack(windows)
     outcome = run_rollouts(model, trajectories, first=0, context=c, horizon=h,
                            rng=jax.random.fold_in(rng, 1), batch_size=batch_size,
-                           keep_videos=keep_videos, task=task)
+                           keep_videos=keep_videos, task=task, progress="evaluate long")
     results["long"] = dict(outcome.summary(), context=c, horizon=h,
                            mean_length=float(trajectories.lengths.mean()))
     videos["long"] = outcome.videos

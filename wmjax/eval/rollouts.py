@@ -15,6 +15,7 @@ from wmjax.eval.trajectories import Trajectories
 from wmjax.frames import to_model, to_uint8
 from wmjax.model import LoadedModel
 from wmjax.parallel import shard_rollout_batch
+from wmjax.progress import Progress
 from wmjax.rollout import rollout
 from wmjax.registry import FrameMetrics
 
@@ -67,13 +68,14 @@ class Outcome:
 def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, context: int,
                  horizon: int, rng: jax.Array, batch_size: int, keep_videos: int = 0,
                  frechet: FrechetDistances | None = None, baseline: bool = True,
-                 task: FrameMetrics | None = None) -> Outcome:
+                 task: FrameMetrics | None = None, progress: str | None = None) -> Outcome:
   """Roll out every trajectory from its frames ``[first, first + context)`` under its actions
   (batches of ``batch_size``, padded so that one compilation serves all; the frames encoded by
   the model's codec, or the trajectories' own latents where they carry them) and score the frames
   from ``first + context`` on against the truth (and feed ``frechet``, if given); the
   copy-last-frame baseline is scored too unless ``baseline`` is False; ``task`` adds the
-  dataset's own metrics (:func:`wmjax.eval.metrics.frame_metrics`)."""
+  dataset's own metrics (:func:`wmjax.eval.metrics.frame_metrics`); ``progress`` names the loop
+  in progress lines (:class:`wmjax.progress.Progress`), None shows none."""
   start = first + context
   lengths = trajectories.lengths
   if (lengths <= start).any():
@@ -83,6 +85,7 @@ def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, 
   per_copy: dict[str, list] = {}
   videos = []
   latent_reason = latent_l2_left_out(model)
+  tracker = Progress(progress, len(trajectories), "trajectories") if progress else None
   for index, lo in enumerate(range(0, len(trajectories), batch_size)):
     take = np.arange(lo, min(lo + batch_size, len(trajectories)))
     padded = np.concatenate([take, np.full(batch_size - len(take), take[-1])])
@@ -122,6 +125,10 @@ def run_rollouts(model: LoadedModel, trajectories: Trajectories, *, first: int, 
         n = lengths[take[i]] - start
         videos.append((batch.frames[i, first:start + n],
                        np.concatenate([batch.frames[i, first:start], predicted[i, :n]])))
+    if tracker:
+      tracker.update(len(take))
+  if tracker:
+    tracker.close()
   return Outcome({k: np.concatenate(v) for k, v in per_model.items()},
                  {k: np.concatenate(v) for k, v in per_copy.items()}, videos,
                  () if latent_reason is None else (latent_reason,))

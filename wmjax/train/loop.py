@@ -47,6 +47,7 @@ from wmjax.config import complete_config
 from wmjax.data.pipeline import training_pipeline
 from wmjax.diffusion import LevelSampling, diffusion_loss
 from wmjax.errors import CheckpointError, RunError
+from wmjax.progress import clock, plain
 from wmjax.eval.rollouts import run_rollouts
 from wmjax.eval.trajectories import Trajectories
 from wmjax.eval.video import comparison, stack_rows, write_video
@@ -71,9 +72,8 @@ def progress_line(step: int, num_steps: int, start: int, loss: float, samples_pe
   """One line of training progress for a log file: step, loss, speed, elapsed time and the time
   left at the speed of the steps run since ``start`` (where this run began or resumed)."""
   left = (num_steps - step) * elapsed / max(step - start, 1)
-  minutes = lambda seconds: f"{int(seconds // 60)}:{int(seconds % 60):02d}"
   return (f"step {step}/{num_steps}: loss {loss:.4f}, {samples_per_s:.1f} samples/s, elapsed "
-          f"{minutes(elapsed)}, ETA {minutes(left)}")
+          f"{clock(elapsed)}, ETA {clock(left)}")
 
 
 class NonFiniteLossError(RunError):
@@ -421,7 +421,7 @@ class _Run:
     every, num_steps = self.config.train, self.config.train.num_steps
     # a progress bar on a terminal; to a file (a batch job's log, nohup, CI) one plain line per
     # train.log_every steps instead of carriage-return updates on one ever-growing line
-    self.plain_log = self.is_chief and not sys.stderr.isatty()
+    self.plain_log = self.is_chief and plain()
     self.bar = tqdm(total=num_steps, initial=self.start,
                     disable=not self.is_chief or self.plain_log, desc="train", dynamic_ncols=True)
     tick = self.began = time.perf_counter()

@@ -30,6 +30,7 @@ from wmjax.eval import policy_eval
 from wmjax.eval.report import to_json_safe
 from wmjax.eval.video import frame_grid, write_png
 from wmjax.frames import to_uint8
+from wmjax.progress import Progress
 from wmjax.tasks.metaworld import simulator
 from wmjax.tasks.metaworld.dataset import MetaWorld, MetaWorldConfig, run_episode
 from wmjax.tasks.metaworld.metrics import view_metrics
@@ -141,6 +142,7 @@ def evaluate_policies(model, reader: ArmReader, out_dir: str, *, specs=DEFAULT_P
                              "steps": steps, "task": params.task, "policies": {}}
   true_returns, estimated_returns = [], []
   os.makedirs(out_dir, exist_ok=True)
+  tracker = Progress("policy evaluation (simulator and world model)", len(specs), "policies")
   for spec in specs:
     truth = simulate(params, reader, spec, states, steps, context, seed)
     imagined = imagine(model, reader, spec, truth["frames"][:, :context],
@@ -155,6 +157,8 @@ def evaluate_policies(model, reader: ArmReader, out_dir: str, *, specs=DEFAULT_P
         "world_model_success": estimate.astype(int).tolist()}
     rows = [v for n in range(min(3, episodes)) for v in (truth["frames"][n], imagined[n])]
     write_png(os.path.join(out_dir, f"{spec.replace(':', '@')}.png"), frame_grid(rows))
+    tracker.update()
+  tracker.close()
   true_values = [r.mean() for r in true_returns]
   estimated_values = [r.mean() for r in estimated_returns]
   results["agreement"] = policy_eval.agreement(true_values, estimated_values)

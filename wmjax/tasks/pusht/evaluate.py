@@ -31,6 +31,7 @@ from wmjax.eval import planning, policy_eval
 from wmjax.eval.video import (VIDEO_FORMATS, comparison, frame_grid, stack_rows, write_png,
                               write_video)
 from wmjax.frames import to_uint8
+from wmjax.progress import Progress
 from wmjax.tasks.pusht import simulator as pusht
 from wmjax.tasks.pusht.dataset import INSTRUCTION, PushT, PushTConfig
 from wmjax.tasks.pusht.metrics import pusht_metrics
@@ -151,6 +152,7 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
   c = config.rollout.context
   states = initial_states(config, episodes, "evaluate", seed)
   names, values, block, videos_written = list(policies), {}, {}, {}
+  tracker = Progress("policy evaluation (simulator and world model)", len(names), "policies")
   for index, name in enumerate(names):
     truth, imagined = simulate_and_imagine(
         model, policies[name], states, steps, jax.random.fold_in(jax.random.key(seed), index),
@@ -172,6 +174,8 @@ def evaluate_policies(model, policies: dict[str, pusht.PolicyFn],
       every = slice(c - 1, None, policy_chunk(config))
       write_png(os.path.join(out, "videos", f"{name}.png"), frame_grid(
           [video[every] for i in shown for video in (truth["frames"][i], imagined[i])]))
+    tracker.update()
+  tracker.close()
 
   simulator = [values[n]["simulator"] for n in names]
   result = {"policies": {n: {"simulator": _value_dict(values[n]["simulator"]),
@@ -307,6 +311,7 @@ def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
   states = initial_states(config, episodes, "plan", seed)
   rows = {}
   planners = ["world_model"] + (["simulator"] if lookahead else [])
+  tracker = Progress("planning", len(candidates) * len(planners), "settings of K and planner")
   for k in candidates:
     rows[k] = {}
     for kind in planners:
@@ -334,6 +339,8 @@ def plan_in_simulator(model, proposal: planning.Proposal, value_fn: RewardFn,
                        "per_episode": [float(x) for x in coverage[-1]]}
       if kind == "world_model":
         rows[k][kind].update(_exploitability(run, value_fn, c, execute, steps))
+      tracker.update()
+  tracker.close()
   result = {"candidates": rows, "episodes": episodes, "steps": steps, "seed": seed,
             "execute": execute, "held_out": held_out(config, states),
             "table": planning_table(rows)}
