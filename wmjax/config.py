@@ -609,6 +609,16 @@ def split_overrides(argv: Sequence[str]) -> tuple[list[str], list[str]]:
   return overrides, rest
 
 
+def overrides_of(extra: Sequence[str]) -> list[str]:
+  """The ``KEY=VALUE`` overrides of a script's leftover arguments ``extra`` (what its parser did
+  not know), every one of which must be ``--config.KEY=VALUE``; ConfigError otherwise."""
+  overrides, rest = split_overrides(extra)
+  if rest:
+    raise ConfigError(f"unrecognised arguments {rest}; config overrides look like "
+                      f"{OVERRIDE_PREFIX}KEY=VALUE")
+  return [o[len(OVERRIDE_PREFIX):] for o in overrides]
+
+
 OVERRIDES_HELP = (
     "Config overrides: --config.KEY=VALUE, any number, with a Python literal VALUE (strings may "
     "be bare), e.g. --config.train.num_steps=100 --config.optim.learning_rate=3e-4 "

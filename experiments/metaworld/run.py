@@ -65,13 +65,9 @@ def main(argv=None) -> int:
   parser.add_argument("--smoke", action="store_true",
                       help="tiny data, model and episodes: checks the plumbing in minutes")
   args, extra = parser.parse_known_args(argv)
-  from wmjax.config import OVERRIDE_PREFIX, ConfigError, split_overrides
+  from wmjax.config import ConfigError, overrides_of
   try:
-    overrides, rest = split_overrides(extra)
-    if rest:
-      raise ConfigError(f"unrecognised arguments {rest}; config overrides look like "
-                        f"--config.KEY=VALUE")
-    args.overrides = [o[len(OVERRIDE_PREFIX):] for o in overrides]
+    args.overrides = overrides_of(extra)
     experiment = Experiment(args)
   except ConfigError as error:
     parser.error(str(error))

@@ -163,13 +163,9 @@ def main(argv=None) -> int:
   stages = [s for s in STAGES if s in (args.stage or STAGES)]
   if set(stages) <= HOST_STAGES:  # before JAX is imported: keep an accelerator free
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
-  from wmjax.config import OVERRIDE_PREFIX, ConfigError, split_overrides
+  from wmjax.config import ConfigError, overrides_of
   try:
-    overrides, rest = split_overrides(extra)
-    if rest:
-      raise ConfigError(f"unrecognised arguments {rest}; config overrides look like "
-                        f"--config.KEY=VALUE")
-    args.overrides = [o[len(OVERRIDE_PREFIX):] for o in overrides]
+    args.overrides = overrides_of(extra)
     experiment = Experiment(args)
   except ConfigError as error:
     parser.error(str(error))
