@@ -19,14 +19,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
-import logging
 import os
 from typing import Any, Callable, Iterator
 
 import numpy as np
 import tensorflow_datasets as tfds
 
-from wmjax.data.writer import NothingDownloaded, png
+from wmjax.data.writer import NothingDownloaded, png, prepare_builder
 from wmjax.progress import plain
 
 
@@ -114,10 +113,8 @@ def unmatched_draws(draw: Callable[[int], np.ndarray], count: int, known, exclud
 class SyntheticBuilder(NothingDownloaded, tfds.core.GeneratorBasedBuilder):
   """Base builder; subclasses set ``VERSION`` / ``RELEASE_NOTES`` and implement the hooks."""
 
-  plain_progress = False  # print a line every tenth of a split (:func:`prepare` sets it)
-
-  def __init__(self, *, params, **kwargs):
-    self.params = params
+  def __init__(self, *, params, plain_progress: bool = False, **kwargs):
+    self.params, self.plain_progress = params, plain_progress
     super().__init__(config=tfds.core.BuilderConfig(name=params.name), **kwargs)
 
   # ---------------------------------------------------------------- abstract: every subclass
@@ -229,18 +226,7 @@ def prepare(builder_class: type[SyntheticBuilder], data_dir: str, params, **opti
     return written  # reading needs no builder (nor TensorFlow, which writing does)
   builder_class.check_can_write()  # before a directory or lock is made
   with _one_writer(data_dir, f"{builder_class.name}-{params.name}"):
-    absl = logging.getLogger("absl")  # TFDS warns of every config it does not list itself
-    level = absl.level
-    absl.setLevel(logging.ERROR)
-    try:
-      builder = builder_class(params=params, data_dir=data_dir, file_format="array_record",
-                              **options)
-    finally:
-      absl.setLevel(level)
-    # TFDS's bars write carriage-return updates a log file cannot read: on a terminal they stay,
-    # elsewhere the builder prints a plain line every tenth of a split instead
-    builder.plain_progress = plain()
-    if builder.plain_progress:
-      tfds.disable_progress_bar()  # for this process: every later bar would write to a log too
-    builder.download_and_prepare()
+    builder = prepare_builder(lambda: builder_class(
+        params=params, data_dir=data_dir, file_format="array_record", plain_progress=plain(),
+        **options))
   return os.fspath(builder.data_dir)

@@ -21,6 +21,7 @@ import numpy as np
 from PIL import Image
 
 from wmjax.data.videoio import VideoStream, iter_frames
+from wmjax.progress import plain
 
 log = logging.getLogger(__name__)
 
@@ -148,9 +149,27 @@ def write_builder(out: str, name: str, description: str, step: Mapping[str, Any]
   tmp = out.rstrip("/") + ".incomplete"
   shutil.rmtree(tmp, ignore_errors=True)
   try:
-    builder = builder_class(data_dir=tmp, file_format="array_record")
-    builder.download_and_prepare()
+    builder = prepare_builder(lambda: builder_class(data_dir=tmp, file_format="array_record"))
     os.rename(builder.data_dir, out)
   finally:
     shutil.rmtree(tmp, ignore_errors=True)
   return out
+
+
+def prepare_builder(make: Callable[[], Any]) -> Any:
+  """Make a TFDS builder with ``make()`` and write its dataset (``download_and_prepare``),
+  without TFDS's warning about a config it does not list itself, and, where stderr is no
+  terminal, without its progress bars, whose carriage-return updates a log file reads as one
+  ever-growing line (they stay off for the rest of the process). Returns the builder."""
+  import tensorflow_datasets as tfds
+  absl = logging.getLogger("absl")
+  level = absl.level
+  absl.setLevel(logging.ERROR)
+  try:
+    builder = make()
+  finally:
+    absl.setLevel(level)
+  if plain():
+    tfds.disable_progress_bar()
+  builder.download_and_prepare()
+  return builder
