@@ -18,7 +18,7 @@ from wmjax.data import synthetic
 from wmjax.data.sources import ArrayRecordEpisodes
 from wmjax.data.rlds import decode_image
 from wmjax.tasks.metaworld import dataset, metrics, simulator  # sets MUJOCO_GL before mujoco loads
-from wmjax.tasks.metaworld.reader import ArmReader, _init
+from wmjax.tasks.metaworld.reader import ArmReader, _init, degrade, fit_reader
 
 pytest.importorskip("metaworld", reason="needs the metaworld extra")
 
@@ -139,6 +139,27 @@ def test_reader_reads_per_view_and_round_trips(tmp_path):
   np.testing.assert_allclose(again["per_view"], read["per_view"], rtol=1e-6)
   with pytest.raises(ValueError, match=r"frames \[N, 16, 32, 3\]"):
     reader.read(frames[:, :, :16])
+
+
+def test_degrade_blurs_and_adds_noise_only_when_asked():
+  import jax
+  rng = np.random.default_rng(0)
+  views = rng.uniform(-1, 1, (2, 4, 16, 16, 3)).astype(np.float32)
+  key = jax.random.key(0)
+  np.testing.assert_array_equal(np.asarray(degrade(views, key, 0.0, 0.0)), views)
+  # a flat image stays flat under any blur; a textured one loses contrast; all stays in [-1, 1]
+  flat = np.full((2, 4, 16, 16, 3), 0.3, np.float32)
+  np.testing.assert_allclose(np.asarray(degrade(flat, key, 1.0, 0.0)), flat, atol=1e-6)
+  blurred = np.asarray(degrade(views, key, 1.0, 0.0))
+  assert blurred.std() < 0.9 * views.std()
+  noisy = np.asarray(degrade(flat, key, 0.0, 0.5))
+  assert noisy.std() > 0.01 and noisy.min() >= -1 and noisy.max() <= 1
+  # each frame's views get the same degradation: two equal views stay equal
+  pair = np.concatenate([views[:1], views[:1]])
+  out = np.asarray(degrade(pair, key, 1.0, 0.0))
+  np.testing.assert_allclose(out[0], out[1], atol=1e-6)
+  with pytest.raises(ValueError, match=r"blur must lie in \[0, 1\]"):
+    fit_reader(views[0], np.zeros((4, 8)), np.zeros(4), validation=None, blur=2.0)
 
 
 @pytest.mark.parametrize("flag,message", [

@@ -59,6 +59,11 @@ def main(argv=None) -> int:
   parser.add_argument("--metric_episodes", type=int, default=32,
                       help="test episodes of the open-loop arm metrics")
   parser.add_argument("--reader_steps", type=int, default=2000, help="reader training steps")
+  parser.add_argument("--reader_blur", type=float, default=0.0,
+                      help="train the reader on frames blended towards their blur by up to this "
+                           "weight (wmjax.tasks.metaworld.reader.degrade)")
+  parser.add_argument("--reader_noise", type=float, default=0.0,
+                      help="and with Gaussian noise of up to this standard deviation")
   parser.add_argument("--data_workers", type=int, default=max(1, len(os.sched_getaffinity(0))),
                       help="processes simulating the dataset at once (the data is the same for "
                            "any number)")
@@ -135,7 +140,8 @@ class Experiment:
     builder_dir = self._builder_dir()
     train = labelled_frames(builder_dir, "train", max_frames=20000)
     test = labelled_frames(builder_dir, "test")
-    reader, metrics = fit_reader(*train, validation=test, steps=self.args.reader_steps)
+    reader, metrics = fit_reader(*train, validation=test, steps=self.args.reader_steps,
+                                 blur=self.args.reader_blur, noise=self.args.reader_noise)
     reader.save(self.reader_dir)
     _write(metrics_file, metrics)
     print(json.dumps(metrics["validation"], indent=2))

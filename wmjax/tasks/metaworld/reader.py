@@ -169,14 +169,41 @@ def cross_view_gap(reader: ArmReader, frames) -> np.ndarray:
   return 100 * np.linalg.norm(per_view[:, 0, 2:5] - per_view[:, 1, 2:5], axis=-1)
 
 
+def degrade(views: jax.Array, rng: jax.Array, blur: float, noise: float) -> jax.Array:
+  """Views ``[V, B, S, S, 3]`` in [-1, 1] as a generator might draw them: each image blended
+  towards its Gaussian blur (sigma about 1 px: two passes of the binomial filter [1, 2, 1] / 4
+  along each axis) by a weight drawn uniformly from [0, ``blur``], plus Gaussian noise of a
+  standard deviation drawn uniformly from [0, ``noise``]; the same for every view of a frame."""
+  blurred = views
+  for _ in range(2):
+    for axis in (2, 3):
+      padded = jnp.concatenate([jnp.take(blurred, jnp.array([0]), axis), blurred,
+                                jnp.take(blurred, jnp.array([-1]), axis)], axis)
+      size = blurred.shape[axis]
+      blurred = (jax.lax.slice_in_dim(padded, 0, size, axis=axis)
+                 + 2 * jax.lax.slice_in_dim(padded, 1, size + 1, axis=axis)
+                 + jax.lax.slice_in_dim(padded, 2, size + 2, axis=axis)) / 4
+  mix_rng, std_rng, noise_rng = jax.random.split(rng, 3)
+  per_frame = (1, views.shape[1], 1, 1, 1)
+  mix = jax.random.uniform(mix_rng, per_frame, maxval=blur)
+  std = jax.random.uniform(std_rng, per_frame, maxval=noise)
+  degraded = views + mix * (blurred - views) + std * jax.random.normal(noise_rng, views.shape)
+  return jnp.clip(degraded, -1.0, 1.0)
+
+
 def fit_reader(frames, targets, success, *, validation, steps: int = 2000,
                batch_size: int = 64, learning_rate: float = 1e-3, widths=(32, 64, 64),
-               seed: int = 0, log_every: int = 500) -> tuple[ArmReader, dict[str, Any]]:
+               blur: float = 0.0, noise: float = 0.0, seed: int = 0, log_every: int = 500
+               ) -> tuple[ArmReader, dict[str, Any]]:
   """Fit one :class:`ViewReaderCNN` per view to ``frames [N, S, V*S, 3]``, ``targets [N,
   TARGETS]`` and ``success [N]`` (squared error on the standardised targets plus the success's
   class-balanced logistic loss); ``validation = (frames, targets, success)`` of another split
-  sets the fusion weights and is reported (:func:`reader_errors`). Prints one line every
-  ``log_every`` steps."""
+  sets the fusion weights and is reported (:func:`reader_errors`). ``blur`` and ``noise`` > 0
+  train on frames degraded as a generator's are (:func:`degrade`), so that the reader reads a
+  world model's softer frames as it reads the simulator's. Prints one line every ``log_every``
+  steps."""
+  if not (0.0 <= blur <= 1.0 and noise >= 0.0):
+    raise ValueError(f"blur must lie in [0, 1] and noise be >= 0, got blur={blur}, noise={noise}")
   frames, targets = np.asarray(frames), np.asarray(targets, np.float32)
   success = np.asarray(success, np.float32)
   if frames.ndim != 4 or len(frames) != len(targets) or len(frames) != len(success):
@@ -192,7 +219,10 @@ def fit_reader(frames, targets, success, *, validation, steps: int = 2000,
   opt_state = optimizer.init(params)
 
   @jax.jit
-  def step(params, opt_state, x, y, s, w):
+  def step(params, opt_state, x, y, s, w, rng):
+    if blur or noise:
+      x = degrade(x, rng, blur, noise)
+
     def loss_fn(p):
       out = _apply(module, p, x)  # [V, B, TARGETS + 1]
       regression = jnp.mean((out[..., :TARGETS] - y) ** 2)
@@ -202,14 +232,15 @@ def fit_reader(frames, targets, success, *, validation, steps: int = 2000,
     updates, opt_state = optimizer.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), opt_state, loss
 
-  rng = np.random.default_rng(seed)
+  rng, key = np.random.default_rng(seed), jax.random.key(seed)
   start = time.monotonic()
   for i in range(steps):
     index = rng.integers(0, len(frames), batch_size)
     x = np.moveaxis(split_views(to_model(frames[index])), 1, 0)
     params, opt_state, loss = step(params, opt_state, jnp.asarray(x),
                                    jnp.asarray((targets[index] - mean) / std),
-                                   jnp.asarray(success[index]), jnp.asarray(balance[index]))
+                                   jnp.asarray(success[index]), jnp.asarray(balance[index]),
+                                   jax.random.fold_in(key, i))
     if (i + 1) % log_every == 0 or i + 1 == steps:
       print(f"reader step {i + 1}/{steps}: loss {float(loss):.4f}, "
             f"{time.monotonic() - start:.0f} s", flush=True)
@@ -219,7 +250,8 @@ def fit_reader(frames, targets, success, *, validation, steps: int = 2000,
   errors = (reader.read(val_frames)["per_view"] - np.asarray(val_targets)[:, None]) ** 2
   inverse = 1.0 / np.maximum(errors.mean(0), 1e-12)  # [V, TARGETS]
   reader.weights = (inverse / inverse.sum(0)).astype(np.float32)
-  metrics = {"final_loss": float(loss), "train_frames": int(len(frames)),
+  metrics = {"final_loss": float(loss), "train_frames": int(len(frames)), "blur": blur,
+             "noise": noise,
              "validation_frames": int(len(val_frames)),
              "validation": reader_errors(reader, val_frames, val_targets, val_success)}
   return reader, metrics
