@@ -84,11 +84,12 @@ def main(argv=None) -> int:
     open_loop = to_uint8(env.video())
     closed_loop = evaluate.imagine(model, policy_reader, spec, truth["frames"][:, :context],
                                    truth["actions"][:, :context - 1], steps, params.task, 0)
-    true_state, true_views = hand_and_object(reader, truth["frames"])
+    videos = {"simulator": truth["frames"], "open_loop": open_loop, "closed_loop": closed_loop}
+    readings = {name: hand_and_object(reader, frames) for name, frames in videos.items()}
+    true_state, true_views = readings["simulator"]
     rows = {"simulator_success": float(truth["success"].mean())}
-    for name, frames in (("simulator", truth["frames"]), ("open_loop", open_loop),
-                         ("closed_loop", closed_loop)):
-      state, views = hand_and_object(reader, frames)
+    for name, frames in videos.items():
+      state, views = readings[name]
       gap = np.linalg.norm(state[..., :3] - true_state[..., :3], axis=-1) * 100
       rows[name] = {
           "success": float(evaluate.imagined_success(reader, frames, context).mean()),
