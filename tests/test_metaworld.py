@@ -19,6 +19,7 @@ from wmjax.data.sources import ArrayRecordEpisodes
 from wmjax.data.rlds import decode_image
 from wmjax.tasks.metaworld import dataset, metrics, simulator  # sets MUJOCO_GL before mujoco loads
 from wmjax.tasks.metaworld.reader import ArmReader, _init, degrade, fit_reader
+from wmjax.tasks.metaworld.tracking import HandMotion, TrackedHand, fit_hand_motion
 
 pytest.importorskip("metaworld", reason="needs the metaworld extra")
 
@@ -160,6 +161,42 @@ def test_degrade_blurs_and_adds_noise_only_when_asked():
   np.testing.assert_allclose(out[0], out[1], atol=1e-6)
   with pytest.raises(ValueError, match=r"blur must lie in \[0, 1\]"):
     fit_reader(views[0], np.zeros((4, 8)), np.zeros(4), validation=None, blur=2.0)
+
+
+def test_hand_motion_fits_a_lagged_hand_and_tracking_steadies_a_misread_frame():
+  rng = np.random.default_rng(0)
+  true = HandMotion(np.array([0.02, 0.015, 0.017]), np.array([0.026, 0.007, 0.023]))
+  actions = rng.uniform(-1.5, 1.5, (20, 9, 4))  # clipped to [-1, 1] by the motion model
+  hands = [np.zeros((20, 3))]
+  for t in range(9):
+    previous = actions[:, t - 1] if t else np.zeros((20, 4))
+    hands.append(hands[-1] + np.stack([true.move(a, p) for a, p in zip(actions[:, t], previous)]))
+  fitted = HandMotion.fit(np.stack(hands, 1), actions)
+  np.testing.assert_allclose(fitted.now, true.now, atol=1e-9)
+  np.testing.assert_allclose(fitted.before, true.before, atol=1e-9)
+  with pytest.raises(ValueError, match=r"need hands \[N, T, 3\] and actions \[N, T-1, A\]"):
+    HandMotion.fit(np.stack(hands, 1), actions[:, :3])
+  # the same episode read with its fifth frame's hand misread by 6 cm: the newest reading alone
+  # takes the error whole, a tracker a third of it; both keep the object's newest reading
+  newest, tracked = TrackedHand(None), TrackedHand(true, reading_weight=1 / 3)
+  for t in range(5):
+    reading = np.concatenate([hands[t][0], [0.1, 0.2, 0.3 + t]])
+    reading[0] += 0.06 if t == 4 else 0.0
+    states = [tracker.update(reading) for tracker in (newest, tracked)]
+    for tracker in (newest, tracked):
+      tracker.acted(actions[0, t])
+    for state in states:
+      np.testing.assert_allclose(state[3:], reading[3:], rtol=1e-6)
+  errors = [np.linalg.norm(state[:3] - hands[4][0]) for state in states]
+  np.testing.assert_allclose(errors, [0.06, 0.02], atol=1e-6)
+  with pytest.raises(ValueError, match="needs a HandMotion"):
+    TrackedHand(None, reading_weight=0.5)
+
+
+def test_hand_motion_fits_on_the_dataset(tiny_dataset):
+  motion = fit_hand_motion(tiny_dataset)
+  assert motion.now.shape == motion.before.shape == (3,)
+  assert np.isfinite(motion.now).all() and np.isfinite(motion.before).all()
 
 
 @pytest.mark.parametrize("flag,message", [

@@ -58,13 +58,18 @@ def main(argv=None) -> int:
   parser.add_argument("--episodes", type=int, default=24)
   parser.add_argument("--policy_view", type=int, default=None,
                       help="the policies read the state from this view alone")
+  parser.add_argument("--reading_weight", type=float, default=1.0,
+                      help="the policies track the hand (wmjax.tasks.metaworld.tracking), its "
+                           "motion fitted on the model's training data")
   args = parser.parse_args(argv)
 
   from wmjax.env import WorldModelEnv
   from wmjax.frames import to_uint8
   from wmjax.model import load_model
   from wmjax.tasks.metaworld import evaluate
+  from wmjax.tasks.metaworld.dataset import prepare
   from wmjax.tasks.metaworld.reader import ArmReader
+  from wmjax.tasks.metaworld.tracking import fit_hand_motion
 
   model = load_model(args.model)
   reader = ArmReader.load(args.reader)
@@ -73,17 +78,22 @@ def main(argv=None) -> int:
   context = model.config.rollout.context
   steps = params.episode_length - context
   states = evaluate.initial_states(params, args.episodes)
+  weight = args.reading_weight
+  motion = (fit_hand_motion(prepare(model.config.data.data_dir, params)) if weight < 1 else None)
   results = {"model": args.model, "reader": args.reader, "policy_view": args.policy_view,
+             "reading_weight": weight,
              "episodes": args.episodes, "steps": steps, "policies": {}}
   for spec in args.policies.split(","):
-    truth = evaluate.simulate(params, policy_reader, spec, states, steps, context, 0)
+    truth = evaluate.simulate(params, policy_reader, spec, states, steps, context, 0, motion,
+                              weight)
     env = WorldModelEnv.from_model(model, seed=0)
     env.reset(truth["frames"][:, :context], context_actions=truth["actions"][:, :context - 1])
     for t in range(steps):
       env.step(truth["actions"][:, context - 1 + t][:, None])
     open_loop = to_uint8(env.video())
     closed_loop = evaluate.imagine(model, policy_reader, spec, truth["frames"][:, :context],
-                                   truth["actions"][:, :context - 1], steps, params.task, 0)
+                                   truth["actions"][:, :context - 1], steps, params.task, 0,
+                                   motion, weight)
     videos = {"simulator": truth["frames"], "open_loop": open_loop, "closed_loop": closed_loop}
     readings = {name: hand_and_object(reader, frames) for name, frames in videos.items()}
     true_state, true_views = readings["simulator"]

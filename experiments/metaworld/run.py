@@ -64,6 +64,10 @@ def main(argv=None) -> int:
                            "weight (wmjax.tasks.metaworld.reader.degrade)")
   parser.add_argument("--reader_noise", type=float, default=0.0,
                       help="and with Gaussian noise of up to this standard deviation")
+  parser.add_argument("--reading_weight", type=float, default=1.0,
+                      help="the policies track the hand: each new reading moves the position "
+                           "predicted from their actions by this weight (1: the newest reading "
+                           "alone; wmjax.tasks.metaworld.tracking)")
   parser.add_argument("--data_workers", type=int, default=max(1, len(os.sched_getaffinity(0))),
                       help="processes simulating the dataset at once (the data is the same for "
                            "any number)")
@@ -191,7 +195,11 @@ class Experiment:
       print(f"done before: {out}/policy_eval.json")
       return
     from wmjax.tasks.metaworld.evaluate import evaluate_policies
-    results = evaluate_policies(self._model(), self._reader(), out, episodes=self.args.episodes)
+    from wmjax.tasks.metaworld.tracking import fit_hand_motion
+    weight = self.args.reading_weight
+    motion = fit_hand_motion(self._builder_dir()) if weight < 1 else None
+    results = evaluate_policies(self._model(), self._reader(), out, episodes=self.args.episodes,
+                                motion=motion, reading_weight=weight)
     for name, value in results["policies"].items():
       print(f"{name:12s} simulator {value['simulator']['mean']:.3f}  world model "
             f"{value['world_model']['mean']:.3f}")
@@ -208,6 +216,7 @@ class Experiment:
     if policy:
       summary.update(
           held_out=policy["held_out"], episodes=policy["episodes"],
+          reading_weight=policy.get("reading_weight", 1.0),
           pearson=policy["agreement"]["pearson"], spearman=policy["agreement"]["spearman"],
           pearson_ci95=policy["intervals"]["pearson"],
           spearman_ci95=policy["intervals"]["spearman"],

@@ -35,6 +35,7 @@ from wmjax.tasks.metaworld import simulator
 from wmjax.tasks.metaworld.dataset import MetaWorld, MetaWorldConfig, run_episode
 from wmjax.tasks.metaworld.metrics import view_metrics
 from wmjax.tasks.metaworld.reader import ArmReader
+from wmjax.tasks.metaworld.tracking import HandMotion, TrackedHand
 
 # the policies compared when none are named: the expert at four noise levels spread over the
 # range of success rates (at noise 0.6 it fails as often as idle does), and standing still
@@ -66,32 +67,43 @@ def _tiled(frames: np.ndarray) -> np.ndarray:
   return frames.reshape(frames.shape[:-3] + (-1, frames.shape[-1]))
 
 
-class _ReaderPolicy:
-  """A simulator policy acting on the state the reader reads off the newest frame."""
+class ImagePolicy:
+  """A simulator policy acting on the state read off frames, one episode: the reader's reading
+  of each new frame goes through a :class:`.tracking.TrackedHand` (with ``reading_weight = 1``,
+  the default, the newest reading alone)."""
 
-  def __init__(self, spec: str, task: str, reader: ArmReader):
-    self.policy, self.reader = simulator.policy_from_spec(spec, task), reader
+  def __init__(self, spec: str, task: str, motion: HandMotion | None = None,
+               reading_weight: float = 1.0):
+    self.policy = simulator.policy_from_spec(spec, task)
+    self.tracker = TrackedHand(motion, reading_weight)
 
-  def __call__(self, frame, rng) -> np.ndarray:
-    return self.policy(self.reader.read(frame[None])["state"][0], rng)
+  def __call__(self, reading, rng) -> np.ndarray:
+    """``reading [6]`` of the newest frame -> the action ``[4]``."""
+    action = self.policy(self.tracker.update(reading), rng)
+    self.tracker.acted(action)
+    return action
 
 
 def simulate(params: MetaWorldConfig, reader: ArmReader, spec: str, states, steps: int,
-             context: int, seed: int) -> dict[str, np.ndarray]:
-  """Policy ``spec`` on the reader's state from each of ``states`` for ``context - 1`` idle
-  then ``steps`` acting actions in the simulator: ``frames [N, context+steps, S, V*S, 3]``,
-  ``actions [N, context-1+steps, 4]``, ``success [N]`` (reached at any step)."""
+             context: int, seed: int, motion: HandMotion | None = None,
+             reading_weight: float = 1.0) -> dict[str, np.ndarray]:
+  """:class:`ImagePolicy` ``spec`` (reading simulator frames) from each of ``states`` for
+  ``context - 1`` idle then ``steps`` acting actions in the simulator: ``frames [N,
+  context+steps, S, V*S, 3]``, ``actions [N, context-1+steps, 4]``, ``success [N]`` (reached at
+  any step)."""
   sim = simulator.ArmSimulator(params.task, params.views, params.image_size,
                                params.action_repeat)
   frames, actions, success = [], [], []
   try:
     for n, start in enumerate(states):
       rng = np.random.default_rng([seed, n])
-      policy = _ReaderPolicy(spec, params.task, reader)
+      policy = ImagePolicy(spec, params.task, motion, reading_weight)
 
       def act(t, state, views, rng):
         del state
-        return simulator.idle(None, None) if t < context - 1 else policy(_tiled(views), rng)
+        if t < context - 1:
+          return simulator.idle(None, None)
+        return policy(reader.read(_tiled(views)[None])["state"][0], rng)
 
       run = run_episode(sim, act, start, context - 1 + steps, rng)
       frames.append(_tiled(run["frames"]))
@@ -103,13 +115,14 @@ def simulate(params: MetaWorldConfig, reader: ArmReader, spec: str, states, step
 
 
 def imagine(model, reader: ArmReader, spec: str, start_frames, context_actions, steps: int,
-            task: str, seed: int) -> np.ndarray:
-  """Policy ``spec`` closed loop in the world model from ``start_frames [N, c, S, V*S, 3]`` and
-  the ``context_actions [N, c-1, 4]`` between them: the frames ``[N, c+steps, S, V*S, 3]``
-  uint8."""
+            task: str, seed: int, motion: HandMotion | None = None,
+            reading_weight: float = 1.0) -> np.ndarray:
+  """:class:`ImagePolicy` ``spec`` closed loop in the world model (reading imagined frames) from
+  ``start_frames [N, c, S, V*S, 3]`` and the ``context_actions [N, c-1, 4]`` between them: the
+  frames ``[N, c+steps, S, V*S, 3]`` uint8."""
   env = WorldModelEnv.from_model(model, seed=seed)
   env.reset(start_frames, context_actions=context_actions)
-  policies = [simulator.policy_from_spec(spec, task) for _ in range(len(start_frames))]
+  policies = [ImagePolicy(spec, task, motion, reading_weight) for _ in range(len(start_frames))]
   rngs = [np.random.default_rng([seed, n]) for n in range(len(start_frames))]
   last = to_uint8(np.asarray(start_frames)[:, -1])
   for _ in range(steps):
@@ -128,10 +141,12 @@ def imagined_success(reader: ArmReader, frames, context: int) -> np.ndarray:
 
 
 def evaluate_policies(model, reader: ArmReader, out_dir: str, *, specs=DEFAULT_POLICIES,
-                      episodes: int = 24, steps: int | None = None, seed: int = 0
+                      episodes: int = 24, steps: int | None = None, seed: int = 0,
+                      motion: HandMotion | None = None, reading_weight: float = 1.0
                       ) -> dict[str, Any]:
-  """Each policy of ``specs`` from the same ``episodes`` held-out start states in the simulator
-  and in the world model ``model``; writes ``policy_eval.json`` (per-episode successes on both
+  """Each :class:`ImagePolicy` of ``specs`` (tracking the hand with ``motion`` and
+  ``reading_weight``) from the same ``episodes`` held-out start states in the simulator and in
+  the world model ``model``; writes ``policy_eval.json`` (per-episode successes on both
   sides, values, agreement with bootstrap intervals) and per policy a PNG (simulator row above
   world-model row, a few episodes) into ``out_dir``; returns the results."""
   params = params_of(model.config)
@@ -139,14 +154,16 @@ def evaluate_policies(model, reader: ArmReader, out_dir: str, *, specs=DEFAULT_P
   steps = steps or params.episode_length - context
   states = initial_states(params, episodes, seed=seed)
   results: dict[str, Any] = {"held_out": held_out(params, states), "episodes": episodes,
-                             "steps": steps, "task": params.task, "policies": {}}
+                             "steps": steps, "task": params.task, "reading_weight": reading_weight,
+                             "hand_motion": motion.to_dict() if motion else None, "policies": {}}
   true_returns, estimated_returns = [], []
   os.makedirs(out_dir, exist_ok=True)
   tracker = Progress("policy evaluation (simulator and world model)", len(specs), "policies")
   for spec in specs:
-    truth = simulate(params, reader, spec, states, steps, context, seed)
+    truth = simulate(params, reader, spec, states, steps, context, seed, motion, reading_weight)
     imagined = imagine(model, reader, spec, truth["frames"][:, :context],
-                       truth["actions"][:, :context - 1], steps, params.task, seed)
+                       truth["actions"][:, :context - 1], steps, params.task, seed, motion,
+                       reading_weight)
     estimate = imagined_success(reader, imagined, context)
     true_returns.append(truth["success"].astype(np.float64))
     estimated_returns.append(estimate.astype(np.float64))
