@@ -193,10 +193,19 @@ def test_hand_motion_fits_a_lagged_hand_and_tracking_steadies_a_misread_frame():
     TrackedHand(None, reading_weight=0.5)
 
 
-def test_hand_motion_fits_on_the_dataset(tiny_dataset):
+def test_hand_motion_fits_on_the_training_data_and_names_it_when_missing(tiny_dataset, tmp_path):
   motion = fit_hand_motion(tiny_dataset)
   assert motion.now.shape == motion.before.shape == (3,)
   assert np.isfinite(motion.now).all() and np.isfinite(motion.before).all()
+  config = load_config(str(ROOT / "configs" / "metaworld.py"), [
+      f"data.data_dir={str(tmp_path)!r}", "data.metaworld.train_episodes=3"])
+  with pytest.raises(FileNotFoundError, match="wmjax data prepare metaworld"):
+    evaluate.training_hand_motion(config)
+  data_dir = os.path.dirname(os.path.dirname(os.path.dirname(tiny_dataset)))  # DIR/name/cfg/ver
+  config = load_config(str(ROOT / "configs" / "metaworld.py"), [
+      f"data.data_dir={data_dir!r}"] + [f"data.metaworld.{k}={v!r}" for k, v in
+                                         dataclasses.asdict(TINY).items() if k != "views"])
+  np.testing.assert_allclose(evaluate.training_hand_motion(config).now, motion.now)
 
 
 @pytest.mark.parametrize("flag,message", [

@@ -67,9 +67,7 @@ def main(argv=None) -> int:
   from wmjax.frames import to_uint8
   from wmjax.model import load_model
   from wmjax.tasks.metaworld import evaluate
-  from wmjax.tasks.metaworld.dataset import prepare
   from wmjax.tasks.metaworld.reader import ArmReader
-  from wmjax.tasks.metaworld.tracking import fit_hand_motion
 
   model = load_model(args.model)
   reader = ArmReader.load(args.reader)
@@ -79,7 +77,7 @@ def main(argv=None) -> int:
   steps = params.episode_length - context
   states = evaluate.initial_states(params, args.episodes)
   weight = args.reading_weight
-  motion = (fit_hand_motion(prepare(model.config.data.data_dir, params)) if weight < 1 else None)
+  motion = evaluate.training_hand_motion(model.config) if weight < 1 else None
   results = {"model": args.model, "reader": args.reader, "policy_view": args.policy_view,
              "reading_weight": weight,
              "episodes": args.episodes, "steps": steps, "policies": {}}

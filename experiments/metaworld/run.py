@@ -194,11 +194,10 @@ class Experiment:
     if os.path.exists(os.path.join(out, "policy_eval.json")):
       print(f"done before: {out}/policy_eval.json")
       return
-    from wmjax.tasks.metaworld.evaluate import evaluate_policies
-    from wmjax.tasks.metaworld.tracking import fit_hand_motion
-    weight = self.args.reading_weight
-    motion = fit_hand_motion(self._builder_dir()) if weight < 1 else None
-    results = evaluate_policies(self._model(), self._reader(), out, episodes=self.args.episodes,
+    from wmjax.tasks.metaworld.evaluate import evaluate_policies, training_hand_motion
+    weight, model = self.args.reading_weight, self._model()
+    motion = training_hand_motion(model.config) if weight < 1 else None
+    results = evaluate_policies(model, self._reader(), out, episodes=self.args.episodes,
                                 motion=motion, reading_weight=weight)
     for name, value in results["policies"].items():
       print(f"{name:12s} simulator {value['simulator']['mean']:.3f}  world model "

@@ -11,6 +11,7 @@ from wmjax.cli import common
 # dataset's action_repeat
 DEFAULT_CONTROL_STEPS = 24
 METAWORLD = "wmjax.tasks.metaworld"
+METAWORLD_READING_WEIGHT = 0.3  # experiments/metaworld/RESULTS.md, "Policies that track the hand"
 OVERRIDES_NOTE = ("Inference settings of the checkpoint's config can be overridden, "
                   "e.g. --config.sampling.num_steps=4.")
 
@@ -29,8 +30,8 @@ def eval_policy(args, extra) -> int:
   model = common.inference_model(args.workdir, args, extra)
   if model.config.get("task") == METAWORLD:
     return _eval_arm_policy(args, model)
-  if args.reader:
-    raise ValueError("--reader is for a MetaWorld model; this one's task is "
+  if args.reader or args.reading_weight is not None:
+    raise ValueError("--reader and --reading_weight are for a MetaWorld model; this one's task is "
                      f"{model.config.get('task')!r}")
   from wmjax.eval.rewards import reward_from_spec
   from wmjax.tasks.pusht.evaluate import (evaluate_policies, policies_from_specs, policy_chunk,
@@ -50,7 +51,8 @@ def eval_policy(args, extra) -> int:
 def _eval_arm_policy(args, model) -> int:
   """MetaWorld: image-based policies (the expert on the state a reader reads off frames) in the
   simulator and closed loop in the world model, from held-out start states."""
-  from wmjax.tasks.metaworld.evaluate import DEFAULT_POLICIES, evaluate_policies
+  from wmjax.tasks.metaworld.evaluate import (DEFAULT_POLICIES, evaluate_policies,
+                                              training_hand_motion)
   from wmjax.tasks.metaworld.reader import ArmReader
   if not args.reader:
     raise ValueError("a MetaWorld model's policies act on, and are scored by, a frame reader: "
@@ -58,10 +60,15 @@ def _eval_arm_policy(args, model) -> int:
   if args.reward or args.scan:
     raise ValueError("--reward and --scan are Push-T's; a MetaWorld model is scored by its "
                      "--reader's success")
+  weight = METAWORLD_READING_WEIGHT if args.reading_weight is None else args.reading_weight
+  if not 0.0 < weight <= 1.0:
+    raise ValueError(f"--reading_weight must be in (0, 1], got {weight}")
+  reader = ArmReader.load(args.reader)
+  motion = training_hand_motion(model.config) if weight < 1 else None
   out = args.out or f"{args.workdir}/policy_eval"
-  result = evaluate_policies(model, ArmReader.load(args.reader), out,
-                             specs=args.policy or DEFAULT_POLICIES, episodes=args.episodes,
-                             steps=args.steps, seed=args.seed)
+  result = evaluate_policies(model, reader, out, specs=args.policy or DEFAULT_POLICIES,
+                             episodes=args.episodes, steps=args.steps, seed=args.seed,
+                             motion=motion, reading_weight=weight)
   for name, value in result["policies"].items():
     print(f"{name:12s} simulator {value['simulator']['mean']:.3f} ± "
           f"{value['simulator']['stderr']:.3f}   world model {value['world_model']['mean']:.3f} ± "
@@ -122,6 +129,11 @@ def add_parser(sub) -> None:
   policy.add_argument("--reader", default=None,
                       help="MetaWorld: the frame reader's directory (its policies act on the "
                            "state it reads, and it reads success off imagined frames)")
+  policy.add_argument("--reading_weight", type=float, default=None,
+                      help="MetaWorld: the policies track the hand, each new reading moving the "
+                           "position predicted from their actions by this weight, in (0, 1] (1: "
+                           "the newest reading alone; default %s; the motion is fitted on the "
+                           "model's training data)" % METAWORLD_READING_WEIGHT)
   policy.add_argument("--reward", action="append",
                       help="Push-T: coverage | vlm | classifier:DIR | goal:IMAGE, repeatable, all "
                            "scored on the same rollouts (default: coverage)")

@@ -216,12 +216,18 @@ def _one_writer(data_dir: str, name: str):
       fcntl.flock(lock, fcntl.LOCK_UN)
 
 
+def written_dir(builder_class: type[SyntheticBuilder], data_dir: str, params) -> str:
+  """Where :func:`prepare` writes (or wrote) the dataset of ``params`` under ``data_dir``."""
+  return os.path.join(os.fspath(data_dir), builder_class.name, params.name,
+                      str(builder_class.VERSION))
+
+
 def prepare(builder_class: type[SyntheticBuilder], data_dir: str, params, **options) -> str:
   """Write the dataset as ArrayRecord under ``data_dir`` (once, also when several processes ask
   for it at the same time); returns the builder directory. ``options`` go to the builder (how
   it generates, not what: a Push-T builder's ``workers``)."""
   data_dir = os.fspath(data_dir)
-  written = os.path.join(data_dir, builder_class.name, params.name, str(builder_class.VERSION))
+  written = written_dir(builder_class, data_dir, params)
   if "://" not in data_dir and os.path.exists(os.path.join(written, "dataset_info.json")):
     return written  # reading needs no builder (nor TensorFlow, which writing does)
   builder_class.check_can_write()  # before a directory or lock is made

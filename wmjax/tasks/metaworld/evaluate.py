@@ -35,7 +35,7 @@ from wmjax.tasks.metaworld import simulator
 from wmjax.tasks.metaworld.dataset import MetaWorld, MetaWorldConfig, run_episode
 from wmjax.tasks.metaworld.metrics import view_metrics
 from wmjax.tasks.metaworld.reader import ArmReader
-from wmjax.tasks.metaworld.tracking import HandMotion, TrackedHand
+from wmjax.tasks.metaworld.tracking import HandMotion, TrackedHand, fit_hand_motion
 
 # the policies compared when none are named: the expert at four noise levels spread over the
 # range of success rates (at noise 0.6 it fails as often as idle does), and standing still
@@ -54,6 +54,18 @@ def initial_states(params: MetaWorldConfig, episodes: int, purpose: str = "evalu
   rng = synthetic.stream(params.seed, purpose, seed)
   return synthetic.unmatched_draws(lambda n: simulator.random_start_states(space, rng, n),
                                    episodes, MetaWorld.start_states(params, "train"))
+
+
+def training_hand_motion(config) -> HandMotion:
+  """:class:`.tracking.HandMotion` fitted on the training split of a model's dataset
+  (``config.data.data_dir``), which must have been written."""
+  params = params_of(config)
+  builder_dir = synthetic.written_dir(MetaWorld, os.path.expanduser(config.data.data_dir), params)
+  if not os.path.exists(os.path.join(builder_dir, "dataset_info.json")):
+    raise FileNotFoundError(f"tracking the hand fits its motion on the model's training data, "
+                            f"expected at {builder_dir}; write it with wmjax data prepare metaworld "
+                            f"or give --config.data.data_dir")
+  return fit_hand_motion(builder_dir)
 
 
 def held_out(params: MetaWorldConfig, states) -> bool:
