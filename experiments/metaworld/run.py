@@ -64,10 +64,10 @@ def main(argv=None) -> int:
                            "weight (wmjax.tasks.metaworld.reader.degrade)")
   parser.add_argument("--reader_noise", type=float, default=0.0,
                       help="and with Gaussian noise of up to this standard deviation")
-  parser.add_argument("--reading_weight", type=float, default=1.0,
+  parser.add_argument("--reading_weight", type=float, default=None,
                       help="the policies track the hand: each new reading moves the position "
                            "predicted from their actions by this weight (1: the newest reading "
-                           "alone; wmjax.tasks.metaworld.tracking)")
+                           "alone; default wmjax.tasks.metaworld.evaluate.READING_WEIGHT)")
   parser.add_argument("--data_workers", type=int, default=max(1, len(os.sched_getaffinity(0))),
                       help="processes simulating the dataset at once (the data is the same for "
                            "any number)")
@@ -194,8 +194,10 @@ class Experiment:
     if os.path.exists(os.path.join(out, "policy_eval.json")):
       print(f"done before: {out}/policy_eval.json")
       return
-    from wmjax.tasks.metaworld.evaluate import evaluate_policies, training_hand_motion
-    weight, model = self.args.reading_weight, self._model()
+    from wmjax.tasks.metaworld.evaluate import (READING_WEIGHT, evaluate_policies,
+                                                training_hand_motion)
+    weight = READING_WEIGHT if self.args.reading_weight is None else self.args.reading_weight
+    model = self._model()
     motion = training_hand_motion(model.config) if weight < 1 else None
     results = evaluate_policies(model, self._reader(), out, episodes=self.args.episodes,
                                 motion=motion, reading_weight=weight)

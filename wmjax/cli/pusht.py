@@ -11,7 +11,6 @@ from wmjax.cli import common
 # dataset's action_repeat
 DEFAULT_CONTROL_STEPS = 24
 METAWORLD = "wmjax.tasks.metaworld"
-METAWORLD_READING_WEIGHT = 0.3  # experiments/metaworld/RESULTS.md, "Policies that track the hand"
 OVERRIDES_NOTE = ("Inference settings of the checkpoint's config can be overridden, "
                   "e.g. --config.sampling.num_steps=4.")
 
@@ -51,8 +50,8 @@ def eval_policy(args, extra) -> int:
 def _eval_arm_policy(args, model) -> int:
   """MetaWorld: image-based policies (the expert on the state a reader reads off frames) in the
   simulator and closed loop in the world model, from held-out start states."""
-  from wmjax.tasks.metaworld.evaluate import (DEFAULT_POLICIES, evaluate_policies,
-                                              training_hand_motion)
+  from wmjax.tasks.metaworld.evaluate import (DEFAULT_POLICIES, READING_WEIGHT,
+                                              evaluate_policies, training_hand_motion)
   from wmjax.tasks.metaworld.reader import ArmReader
   if not args.reader:
     raise ValueError("a MetaWorld model's policies act on, and are scored by, a frame reader: "
@@ -60,7 +59,7 @@ def _eval_arm_policy(args, model) -> int:
   if args.reward or args.scan:
     raise ValueError("--reward and --scan are Push-T's; a MetaWorld model is scored by its "
                      "--reader's success")
-  weight = METAWORLD_READING_WEIGHT if args.reading_weight is None else args.reading_weight
+  weight = READING_WEIGHT if args.reading_weight is None else args.reading_weight
   if not 0.0 < weight <= 1.0:
     raise ValueError(f"--reading_weight must be in (0, 1], got {weight}")
   reader = ArmReader.load(args.reader)
@@ -132,8 +131,8 @@ def add_parser(sub) -> None:
   policy.add_argument("--reading_weight", type=float, default=None,
                       help="MetaWorld: the policies track the hand, each new reading moving the "
                            "position predicted from their actions by this weight, in (0, 1] (1: "
-                           "the newest reading alone; default %s; the motion is fitted on the "
-                           "model's training data)" % METAWORLD_READING_WEIGHT)
+                           "the newest reading alone; default wmjax.tasks.metaworld.evaluate."
+                           "READING_WEIGHT; the motion is fitted on the model's training data)")
   policy.add_argument("--reward", action="append",
                       help="Push-T: coverage | vlm | classifier:DIR | goal:IMAGE, repeatable, all "
                            "scored on the same rollouts (default: coverage)")

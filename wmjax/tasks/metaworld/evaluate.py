@@ -40,6 +40,9 @@ from wmjax.tasks.metaworld.tracking import HandMotion, TrackedHand, fit_hand_mot
 # the policies compared when none are named: the expert at four noise levels spread over the
 # range of success rates (at noise 0.6 it fails as often as idle does), and standing still
 DEFAULT_POLICIES = ("expert", "expert:0.2", "expert:0.3", "expert:0.4", "idle")
+# how far each new reading moves the tracked hand, where a command asks for none (run.py, wmjax
+# eval-policy): experiments/metaworld/RESULTS.md, "Policies that track the hand"
+READING_WEIGHT = 0.3
 
 
 def params_of(config) -> MetaWorldConfig:
