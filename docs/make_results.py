@@ -21,7 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402  (the backend is chosen first)
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PUSHT = ROOT / "experiments" / "pusht" / "results"
 IMPROVE = ROOT / "experiments" / "improve" / "results"
-METAWORLD = ROOT / "experiments" / "metaworld" / "results" / "cpu_seed0"
+METAWORLD = ROOT / "experiments" / "metaworld" / "results" / "cpu_seed0_tracked"
 BENCH = ROOT / "benchmarks" / "results"
 ASSETS = pathlib.Path("assets") / "results"
 
@@ -165,8 +165,8 @@ def policy_values(out: pathlib.Path) -> tuple[str, pathlib.Path]:
     f"Push-T, the self-forced `latent` profile in one piece (53c275a, AMD EPYC without AVX-512, "
     f"2026-11-29, {pusht['episodes']['policy_eval']} held-out episodes a policy): Pearson "
     f"{pusht['pearson']:.3f} {_ci(pusht['pearson_ci95'])}, Spearman {pusht['spearman']:.3f}.\n"
-    f"MetaWorld `button-press-v3`, `cpu` profile (6cdc256, AMD EPYC, 2026-12-07, "
-    f"{metaworld['episodes']} held-out episodes): Pearson {metaworld['agreement']['pearson']:.3f} "
+    f"MetaWorld `button-press-v3`, `cpu` profile, policies tracking the hand (bc9475b, AMD EPYC, "
+    f"2026-12-07, {metaworld['episodes']} held-out episodes a policy): Pearson {metaworld['agreement']['pearson']:.3f} "
     f"{_ci(metaworld['intervals']['pearson'])}, Spearman {metaworld['agreement']['spearman']:.3f}; "
     f"the world model sees `expert` succeed {expert['world_model']} of the time where the "
     f"simulator sees {expert['simulator']}.")
