@@ -7,8 +7,10 @@
 * :func:`evaluate_policies` — every policy from the same held-out start states in the simulator
   and closed loop in the world model; success in the simulator is MetaWorld's signal, in the world
   model the reader's success probability above 0.5 on any imagined frame. The policies are
-  image-based on both sides: MetaWorld's scripted expert acting on the state the reader reads
-  off the newest frame (simulator render or imagined frame), with Gaussian action noise.
+  image-based on both sides (:class:`ImagePolicy`): MetaWorld's scripted expert, with Gaussian
+  action noise, acting on the state the reader reads off each new frame (simulator render or
+  imagined frame), the hand tracked between frames from the policy's own actions
+  (:mod:`.tracking`) when a reading weight below 1 is given.
 
 Both start each episode with ``context - 1`` idle actions so that the world model gets the
 simulator's first ``context`` frames and the actions between them. Start states come from the
