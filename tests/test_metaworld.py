@@ -193,6 +193,12 @@ def test_hand_motion_fits_a_lagged_hand_and_tracking_steadies_a_misread_frame():
     TrackedHand(None, reading_weight=0.5)
 
 
+def test_policy_evaluation_refuses_fewer_than_three_policies_before_simulating(tmp_path):
+  with pytest.raises(ValueError, match=r"at least 3 of them, got 2: \['expert', 'idle'\]"):
+    evaluate.evaluate_policies(None, None, str(tmp_path), specs=("expert", "idle"))
+  assert not any(tmp_path.iterdir())
+
+
 def test_hand_motion_fits_on_the_training_data_and_names_it_when_missing(tiny_dataset, tmp_path):
   motion = fit_hand_motion(tiny_dataset)
   assert motion.now.shape == motion.before.shape == (3,)

@@ -166,6 +166,8 @@ def evaluate_policies(model, reader: ArmReader, out_dir: str, *, specs=DEFAULT_P
   the world model ``model``; writes ``policy_eval.json`` (per-episode successes on both
   sides, values, agreement with bootstrap intervals) and per policy a PNG (simulator row above
   world-model row, a few episodes) into ``out_dir``; returns the results."""
+  if len(specs) < 3:  # before any simulating: the agreement needs three values on each side
+    raise ValueError(f"ranking policies needs at least 3 of them, got {len(specs)}: {list(specs)}")
   params = params_of(model.config)
   context = model.config.rollout.context
   steps = steps or params.episode_length - context
