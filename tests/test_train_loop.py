@@ -3,6 +3,7 @@ Ctrl-C: test_run_integrity.py)."""
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -55,16 +56,22 @@ def _batches(workdir):
 
 
 @pytest.mark.slow
-def test_kill_and_resume_is_bit_identical(data_dir, tmp_path):
-  overrides = _overrides(data_dir)
-  straight, interrupted = tmp_path / "straight", tmp_path / "interrupted"
-  # the uninterrupted run goes beside the one to kill: each spends most of its time importing
-  # and compiling on one core
-  uninterrupted = subprocess.Popen(_train_command(straight, overrides), cwd=ROOT, env=_env(),
+def test_kill_and_resume_is_bit_identical_and_another_slice_size_reads_the_same_batches(
+    data_dir, tmp_path):
+  """A run over 8 devices (FSDP) killed after a checkpoint and resumed on the same mesh ends
+  bit-identical to an uninterrupted run. The same checkpoint resumed over 4 devices (a preempted
+  job on a smaller slice: another mesh) reads the batches the uninterrupted run reads, step by
+  step, and ends where that run ends but for the reduction order."""
+  overrides = _overrides(data_dir, batch_size=8)
+  eight, four = overrides + ["mesh=(1, 8, 1)"], overrides + ["mesh=(1, 4, 1)"]
+  straight, killed, moved = tmp_path / "straight", tmp_path / "killed", tmp_path / "moved"
+  # each pair of runs goes side by side: each spends most of its time importing and compiling
+  # on one core
+  uninterrupted = subprocess.Popen(_train_command(straight, eight), cwd=ROOT, env=_env(8),
                                    stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-  process = subprocess.Popen(_train_command(interrupted, overrides), cwd=ROOT, env=_env(),
+  process = subprocess.Popen(_train_command(killed, eight), cwd=ROOT, env=_env(8),
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-  checkpoints = interrupted / "checkpoints"
+  checkpoints = killed / "checkpoints"
   deadline = time.time() + 300
   while not any((checkpoints / str(s)).is_dir() for s in (4, 6)):
     assert process.poll() is None and time.time() < deadline, "no checkpoint before the deadline"
@@ -72,57 +79,36 @@ def test_kill_and_resume_is_bit_identical(data_dir, tmp_path):
   process.send_signal(signal.SIGKILL)
   process.wait()
   assert not (checkpoints / "8").exists()
-  resumed = subprocess.run(_train_command(interrupted, overrides), cwd=ROOT, env=_env(),
-                           check=True, capture_output=True, text=True)
-  assert "resumed from step" in resumed.stdout
+  shutil.copytree(killed, moved)
+  resumed = {workdir: subprocess.Popen(_train_command(workdir, command), cwd=ROOT, env=_env(n),
+                                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for workdir, command, n in ((killed, eight, 8), (moved, four, 4))}
+  outputs = {workdir: run.communicate(timeout=300) for workdir, run in resumed.items()}
+  for workdir, run in resumed.items():
+    assert run.returncode == 0, outputs[workdir][1][-3000:]
+    assert "resumed from step" in outputs[workdir][0]
+  out, err = outputs[killed]
   # to a pipe, not a terminal: one plain progress line per log, no carriage-return bar
-  assert "step 8/8: loss " in resumed.stdout and "ETA 0:00" in resumed.stdout
-  assert "\r" not in resumed.stderr and "train:" not in resumed.stderr
+  assert "step 8/8: loss " in out and "ETA 0:00" in out
+  assert "\r" not in err and "train:" not in err
+  assert json.loads((moved / "config.json").read_text())["mesh"] == [1, 4, 1]
   _, errors = uninterrupted.communicate(timeout=300)
   assert uninterrupted.returncode == 0, errors[-3000:]
 
-  a, b = _state(straight, 8), _state(interrupted, 8)
-  leaves_a, leaves_b = _flatten(a), _flatten(b)
-  assert leaves_a.keys() == leaves_b.keys() and len(leaves_a) > 10
-  for key in leaves_a:
-    np.testing.assert_array_equal(leaves_a[key], leaves_b[key], err_msg=key)
-  assert _batches(straight) == _batches(interrupted)
+  a, b, c = (_flatten(_state(workdir, 8)) for workdir in (straight, killed, moved))
+  assert a.keys() == b.keys() == c.keys() and len(a) > 10
+  for key in a:
+    np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    np.testing.assert_allclose(c[key], a[key], rtol=1e-4, atol=1e-6, err_msg=key)
+  assert _batches(straight) == _batches(killed) == _batches(moved)
   assert sorted(_batches(straight)) == list(range(1, 9))
-  # train.eval_every=0: no evaluation at all, not even at the end
-  assert json.loads((straight / "metrics.json").read_text()) == {"step": 8}
-  assert not (straight / "rollout.gif").exists() and not (straight / "samples").exists()
-
-
-@pytest.mark.slow
-def test_resume_on_another_slice_size_reads_the_same_batches(data_dir, tmp_path):
-  """A preempted job resumed on a smaller slice: trained with FSDP over 8 devices to step 4,
-  resumed over 4 devices (another mesh) to step 8. It reads the batches an uninterrupted
-  8-device run reads, step by step, and ends where that run ends but for the reduction order."""
-  overrides = _overrides(data_dir, batch_size=8, **{"train.checkpoint_every": 4})
-  eight, four = (1, 8, 1), (1, 4, 1)
-  straight, moved = tmp_path / "straight", tmp_path / "moved"
-  uninterrupted = subprocess.Popen(
-      _train_command(straight, overrides + [f"mesh={eight}"]), cwd=ROOT, env=_env(8),
-      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-  subprocess.run(_train_command(moved, overrides + [f"mesh={eight}", "train.num_steps=4"]),
-                 cwd=ROOT, env=_env(8), check=True, capture_output=True, text=True)
-  resumed = subprocess.run(_train_command(moved, overrides + [f"mesh={four}"]), cwd=ROOT,
-                           env=_env(4), capture_output=True, text=True)
-  assert resumed.returncode == 0, resumed.stderr[-3000:]
-  assert "resumed from step 4" in resumed.stdout
-  assert json.loads((moved / "config.json").read_text())["mesh"] == list(four)
-  _, errors = uninterrupted.communicate(timeout=300)
-  assert uninterrupted.returncode == 0, errors[-3000:]
-
-  assert _batches(straight) == _batches(moved) and sorted(_batches(moved)) == list(range(1, 9))
   losses = [{r["step"]: r["loss"] for r in map(json.loads, open(w / "metrics.jsonl"))}
             for w in (straight, moved)]
   for step in range(1, 9):
     np.testing.assert_allclose(losses[1][step], losses[0][step], rtol=1e-5, err_msg=step)
-  a, b = _flatten(_state(straight, 8)), _flatten(_state(moved, 8))
-  assert a.keys() == b.keys()
-  for key in a:
-    np.testing.assert_allclose(b[key], a[key], rtol=1e-4, atol=1e-6, err_msg=key)
+  # train.eval_every=0: no evaluation at all, not even at the end
+  assert json.loads((straight / "metrics.json").read_text()) == {"step": 8}
+  assert not (straight / "rollout.gif").exists() and not (straight / "samples").exists()
 
 
 def _flatten(tree):
