@@ -27,6 +27,7 @@ import dataclasses
 import functools
 import itertools
 import multiprocessing
+import multiprocessing.util
 import sys
 from concurrent import futures
 
@@ -146,31 +147,55 @@ def run_episode(sim: simulator.ArmSimulator, act, start_state, steps: int,
   return {k: np.stack(v) for k, v in out.items()}
 
 
+def _new_simulator(params: MetaWorldConfig) -> simulator.ArmSimulator:
+  return simulator.ArmSimulator(params.task, params.views, params.image_size, params.action_repeat)
+
+
 def _simulate(params: MetaWorldConfig, draws) -> list[synthetic.GeneratedEpisode]:
-  """The episodes of ``draws`` (one ``(start_state, noise, seed)`` each) in one simulator."""
-  sim = simulator.ArmSimulator(params.task, params.views, params.image_size, params.action_repeat)
-  episodes = []
+  """The episodes of ``draws`` (one ``(start_state, noise, seed)`` each) in a simulator made for
+  them and closed after."""
+  sim = _new_simulator(params)
   try:
-    for start, noise, seed in draws:
-      policy = policy_for(params.task, noise)
-      run = run_episode(sim, lambda t, state, views, rng: policy(state, rng), start,
-                        params.episode_length - 1, np.random.default_rng(seed))
-      length = params.episode_length
-      actions = np.concatenate([run["actions"], simulator.idle(None, None)[None]])
-      frames = run["frames"]
-      episodes.append(synthetic.GeneratedEpisode(
-          images=frames[:, 0], actions=actions.astype(np.float32),
-          instruction=f"{params.task.removesuffix('-v3').replace('-', ' ')}",
-          rewards=run["success"].astype(np.float32),
-          cameras={key.split("/")[-1]: frames[:, v]
-                   for v, key in enumerate(camera_keys(len(params.views))) if v},
-          observations={"state": run["state"], "ee_px": run["ee_px"],
-                        "success": run["success"],
-                        "policy_noise": np.full(length, noise, np.float32),
-                        "start_state": np.repeat(start[None].astype(np.float32), length, 0),
-                        "sim_state": run["sim_state"]}))
+    return _episodes_in(sim, params, draws)
   finally:
     sim.close()
+
+
+_worker_simulator: simulator.ArmSimulator | None = None  # a pool worker's, for every split
+
+
+def _start_worker(params: MetaWorldConfig) -> None:
+  """A pool worker's initialiser: its simulator, started once and closed when the worker ends."""
+  global _worker_simulator
+  _worker_simulator = _new_simulator(params)
+  multiprocessing.util.Finalize(None, _worker_simulator.close, exitpriority=10)
+
+
+def _simulate_in_worker(params: MetaWorldConfig, draws) -> list[synthetic.GeneratedEpisode]:
+  return _episodes_in(_worker_simulator, params, draws)
+
+
+def _episodes_in(sim: simulator.ArmSimulator, params: MetaWorldConfig, draws
+                 ) -> list[synthetic.GeneratedEpisode]:
+  episodes = []
+  for start, noise, seed in draws:
+    policy = policy_for(params.task, noise)
+    run = run_episode(sim, lambda t, state, views, rng: policy(state, rng), start,
+                      params.episode_length - 1, np.random.default_rng(seed))
+    length = params.episode_length
+    actions = np.concatenate([run["actions"], simulator.idle(None, None)[None]])
+    frames = run["frames"]
+    episodes.append(synthetic.GeneratedEpisode(
+        images=frames[:, 0], actions=actions.astype(np.float32),
+        instruction=f"{params.task.removesuffix('-v3').replace('-', ' ')}",
+        rewards=run["success"].astype(np.float32),
+        cameras={key.split("/")[-1]: frames[:, v]
+                 for v, key in enumerate(camera_keys(len(params.views))) if v},
+        observations={"state": run["state"], "ee_px": run["ee_px"],
+                      "success": run["success"],
+                      "policy_noise": np.full(length, noise, np.float32),
+                      "start_state": np.repeat(start[None].astype(np.float32), length, 0),
+                      "sim_state": run["sim_state"]}))
   return episodes
 
 
@@ -191,7 +216,16 @@ class MetaWorld(synthetic.SyntheticBuilder):
 
   def __init__(self, *, workers: int = 1, **kwargs):
     self.workers = workers
+    self._pool = None  # the simulator processes, shared by the splits
     super().__init__(**kwargs)
+
+  def _download_and_prepare(self, dl_manager, download_config):
+    try:
+      return super()._download_and_prepare(dl_manager, download_config)
+    finally:
+      if self._pool is not None:
+        self._pool.shutdown()
+        self._pool = None
 
   def action_dim(self) -> int:
     return simulator.ACTION_DIM
@@ -214,11 +248,13 @@ class MetaWorld(synthetic.SyntheticBuilder):
     if self.workers == 1 and "tensorflow" not in sys.modules:
       yield from _simulate(self.params, draws)
       return
+    if self._pool is None:  # every worker one simulator, started once for all the splits
+      self._pool = futures.ProcessPoolExecutor(
+          self.workers, mp_context=multiprocessing.get_context("spawn"),
+          initializer=_start_worker, initargs=(self.params,))
     workers = max(1, min(self.workers, count))
-    chunks = [draws[i::workers] for i in range(workers)]  # every worker one simulator
-    with futures.ProcessPoolExecutor(workers,
-                                     mp_context=multiprocessing.get_context("spawn")) as pool:
-      done = list(pool.map(_simulate, itertools.repeat(self.params), chunks))
+    chunks = [draws[i::workers] for i in range(workers)]
+    done = list(self._pool.map(_simulate_in_worker, itertools.repeat(self.params), chunks))
     for index in range(count):  # back in the order of the draws
       yield done[index % workers][index // workers]
 
