@@ -44,18 +44,48 @@ def test_metaworld_evaluation_start_states_are_held_out_from_training():
   assert not synthetic.matching(planned, states).any()
 
 
+# Written and replayed in one fresh process: MuJoCo's EGL crashes a process that has imported
+# TensorFlow, as the test process has once another module ran. The replay reads an episode back
+# from disk: its stored simulator state and action give the next step's state and frame.
+PREPARE_AND_REPLAY = f"""
+import dataclasses, sys
+import numpy as np
+from wmjax.data.rlds import decode_image
+from wmjax.data.sources import ArrayRecordEpisodes
+from wmjax.tasks.metaworld import dataset, simulator
+params = dataset.MetaWorldConfig(**{dataclasses.asdict(TINY)!r})
+directory = dataset.prepare(sys.argv[1], params)
+source = ArrayRecordEpisodes(directory, "train")
+source = ArrayRecordEpisodes(directory, "train", dataclasses.replace(
+    source.spec, extra_keys=source.spec.extra_keys + ("observation/sim_state",)))
+e = source.episode(0)
+sim = simulator.ArmSimulator(params.task, params.views, params.image_size, params.action_repeat)
+sim.reset(e.extras["start_state"][0])
+np.testing.assert_allclose(sim.sim_state(), e.extras["sim_state"][0], atol=1e-6)
+sim.restore(e.extras["sim_state"][1])
+sim.step(e.actions[1])
+np.testing.assert_allclose(sim.state(), e.extras["state"][2], atol=1e-5)
+np.testing.assert_array_equal(sim.render()[0],
+                              decode_image(e.images[2], None)[:, :params.image_size])
+sim.close()
+print("replayed", directory)
+"""
+
+
 @pytest.fixture(scope="module")
 def tiny_dataset(tmp_path_factory):
-  # simulated in spawned processes: an EGL context in the test process would crash it once a
-  # later test module imports TensorFlow
-  return dataset.prepare(str(tmp_path_factory.mktemp("metaworld")), TINY, workers=2)
+  """The tiny dataset's builder directory, written (and an episode replayed) by
+  ``PREPARE_AND_REPLAY``."""
+  written = subprocess.run([sys.executable, "-c", PREPARE_AND_REPLAY,
+                            str(tmp_path_factory.mktemp("metaworld"))], capture_output=True,
+                           text=True, timeout=300, env={**os.environ, "PYTHONPATH": str(ROOT)})
+  assert written.returncode == 0 and "replayed" in written.stdout, written.stderr[-2000:]
+  return written.stdout.split()[-1]
 
 
-def test_episodes_hold_both_cameras_side_by_side_and_replay_exactly(tiny_dataset, tmp_path):
+def test_episodes_hold_both_cameras_side_by_side_and_replay_exactly(tiny_dataset):
+  # the replay itself ran in the fixture's process
   source = ArrayRecordEpisodes(tiny_dataset, "train")
-  replay = ("observation/sim_state",)  # read on demand, not carried into training windows
-  source = ArrayRecordEpisodes(tiny_dataset, "train", dataclasses.replace(
-      source.spec, extra_keys=source.spec.extra_keys + replay))
   assert len(source) == 3
   episode = source.episode(0)
   frame = decode_image(episode.images[0], None)
@@ -64,39 +94,12 @@ def test_episodes_hold_both_cameras_side_by_side_and_replay_exactly(tiny_dataset
   assert not np.array_equal(views[0], views[1])
   noise = [float(source.episode(i).extras["policy_noise"][0]) for i in range(3)]
   assert noise == list(TINY.episode_noise(3))
-  # the stored simulator state and action give the next step's state: checked in a fresh
-  # process (MuJoCo's EGL crashes beside TensorFlow, which other test modules load)
-  np.savez(tmp_path / "episode.npz", start=episode.extras["start_state"][0],
-           sim_state=episode.extras["sim_state"], actions=episode.actions,
-           state=episode.extras["state"], image=decode_image(episode.images[2], None)[:, :16])
-  replay = subprocess.run([sys.executable, "-c", REPLAY, str(tmp_path / "episode.npz")],
-                          capture_output=True, text=True, timeout=120,
-                          env={**os.environ, "PYTHONPATH": str(ROOT)})
-  assert replay.returncode == 0 and "replayed" in replay.stdout, replay.stderr[-2000:]
-
 
 
 def test_the_simulator_refuses_a_process_with_tensorflow(monkeypatch):
   monkeypatch.setitem(sys.modules, "tensorflow", types.ModuleType("tensorflow"))
   with pytest.raises(RuntimeError, match="crashes a process that has imported TensorFlow"):
     simulator.ArmSimulator(TINY.task, TINY.views, TINY.image_size)
-
-
-REPLAY = f"""
-import sys
-import numpy as np
-from wmjax.tasks.metaworld import simulator
-e = np.load(sys.argv[1])
-sim = simulator.ArmSimulator({TINY.task!r}, {TINY.views!r}, {TINY.image_size}, {TINY.action_repeat})
-sim.reset(e["start"])
-np.testing.assert_allclose(sim.sim_state(), e["sim_state"][0], atol=1e-6)
-sim.restore(e["sim_state"][1])
-sim.step(e["actions"][1])
-np.testing.assert_allclose(sim.state(), e["state"][2], atol=1e-5)
-np.testing.assert_array_equal(sim.render()[0], e["image"])
-sim.close()
-print("replayed")
-"""
 
 
 def test_the_config_reads_the_dataset_as_two_views():

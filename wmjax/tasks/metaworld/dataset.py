@@ -151,16 +151,6 @@ def _new_simulator(params: MetaWorldConfig) -> simulator.ArmSimulator:
   return simulator.ArmSimulator(params.task, params.views, params.image_size, params.action_repeat)
 
 
-def _simulate(params: MetaWorldConfig, draws) -> list[synthetic.GeneratedEpisode]:
-  """The episodes of ``draws`` (one ``(start_state, noise, seed)`` each) in a simulator made for
-  them and closed after."""
-  sim = _new_simulator(params)
-  try:
-    return _episodes_in(sim, params, draws)
-  finally:
-    sim.close()
-
-
 _worker_simulator: simulator.ArmSimulator | None = None  # a pool worker's, for every split
 
 
@@ -216,13 +206,17 @@ class MetaWorld(synthetic.SyntheticBuilder):
 
   def __init__(self, *, workers: int = 1, **kwargs):
     self.workers = workers
-    self._pool = None  # the simulator processes, shared by the splits
+    # the splits share one simulator: in this process, or one in each of the pool's processes
+    self._simulator = self._pool = None
     super().__init__(**kwargs)
 
   def _download_and_prepare(self, dl_manager, download_config):
     try:
       return super()._download_and_prepare(dl_manager, download_config)
     finally:
+      if self._simulator is not None:
+        self._simulator.close()
+        self._simulator = None
       if self._pool is not None:
         self._pool.shutdown()
         self._pool = None
@@ -246,7 +240,9 @@ class MetaWorld(synthetic.SyntheticBuilder):
     draws = list(zip(states, noise, seeds))
     # in this process unless TensorFlow is loaded here (MuJoCo's EGL crashes beside it)
     if self.workers == 1 and "tensorflow" not in sys.modules:
-      yield from _simulate(self.params, draws)
+      if self._simulator is None:
+        self._simulator = _new_simulator(self.params)
+      yield from _episodes_in(self._simulator, self.params, draws)
       return
     if self._pool is None:  # every worker one simulator, started once for all the splits
       self._pool = futures.ProcessPoolExecutor(

@@ -16,6 +16,7 @@ split: the floor under every metric it reads off a world model's frames.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import time
@@ -108,7 +109,7 @@ class ArmReader:
   def load(cls, directory: str) -> "ArmReader":
     with open(os.path.join(directory, "reader.json")) as f:
       meta = json.load(f)
-    template = _init(tuple(meta["widths"]), meta["views"], meta["image_size"], 0)
+    template = jax.eval_shape(_init, tuple(meta["widths"]), meta["views"], meta["image_size"], 0)
     with open(os.path.join(directory, "params.msgpack"), "rb") as f:
       params = serialization.from_bytes(template, f.read())
     return cls(params, np.asarray(meta["mean"], np.float32), np.asarray(meta["std"], np.float32),
@@ -116,7 +117,9 @@ class ArmReader:
                tuple(meta["widths"]))
 
 
-def _init(widths, views: int, size: int, seed: int) -> tuple:
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))  # one program, not an op at a time
+def _init(widths: tuple[int, ...], views: int, size: int, seed: int) -> tuple:
+  """A fresh reader's parameters, one tree per view."""
   keys = jax.random.split(jax.random.key(seed), views)
   return tuple(ViewReaderCNN(widths).init(k, jnp.zeros((1, size, size, 3))) for k in keys)
 
