@@ -61,6 +61,11 @@ def main(argv=None) -> int:
   parser.add_argument("--reading_weight", type=float, default=1.0,
                       help="the policies track the hand (wmjax.tasks.metaworld.tracking), its "
                            "motion fitted on the model's training data")
+  parser.add_argument("--override", action="append", default=[],
+                      help="an inference setting of the model, dotted.key=value (e.g. "
+                           "sampling.num_steps=32), repeatable")
+  parser.add_argument("--seed", type=int, default=0,
+                      help="the world model's sampling seed (the simulator's episodes keep seed 0)")
   args = parser.parse_args(argv)
 
   from wmjax.env import WorldModelEnv
@@ -69,7 +74,7 @@ def main(argv=None) -> int:
   from wmjax.tasks.metaworld import evaluate
   from wmjax.tasks.metaworld.reader import ArmReader
 
-  model = load_model(args.model)
+  model = load_model(args.model, overrides=args.override)
   reader = ArmReader.load(args.reader)
   policy_reader = reader if args.policy_view is None else OneViewReader(reader, args.policy_view)
   params = evaluate.params_of(model.config)
@@ -78,20 +83,21 @@ def main(argv=None) -> int:
   states = evaluate.initial_states(params, args.episodes)
   weight = args.reading_weight
   motion = evaluate.training_hand_motion(model.config) if weight < 1 else None
-  results = {"model": args.model, "reader": args.reader, "policy_view": args.policy_view,
+  results = {"model": args.model, "reader": args.reader, "overrides": args.override,
+             "seed": args.seed, "policy_view": args.policy_view,
              "reading_weight": weight,
              "episodes": args.episodes, "steps": steps, "policies": {}}
   for spec in args.policies.split(","):
     truth = evaluate.simulate(params, policy_reader, spec, states, steps, context, 0, motion,
                               weight)
-    env = WorldModelEnv.from_model(model, seed=0)
+    env = WorldModelEnv.from_model(model, seed=args.seed)
     env.reset(truth["frames"][:, :context], context_actions=truth["actions"][:, :context - 1])
     for t in range(steps):
       env.step(truth["actions"][:, context - 1 + t][:, None])
     open_loop = to_uint8(env.video())
     closed_loop = evaluate.imagine(model, policy_reader, spec, truth["frames"][:, :context],
-                                   truth["actions"][:, :context - 1], steps, params.task, 0,
-                                   motion, weight)
+                                   truth["actions"][:, :context - 1], steps, params.task,
+                                   args.seed, motion, weight)
     videos = {"simulator": truth["frames"], "open_loop": open_loop, "closed_loop": closed_loop}
     readings = {name: hand_and_object(reader, frames) for name, frames in videos.items()}
     true_state, true_views = readings["simulator"]
