@@ -4,7 +4,8 @@ policy reading its frames.
 For each policy, from the same held-out start states as ``run.py``'s policy stage: the
 simulator's episodes (the image-based policy acting on simulator frames), then the world model
 fed those episodes' actions **open loop**, then the policy **closed loop** in the world model.
-For each of the three: success (the reader's, on any frame after the context), the length of
+For each of the three: success (the reader's, on any frame after the context; also as each
+view alone reads it), the length of
 the hand's path (cm) and its distance from the simulator's hand at every step (cm), all read by
 the reader; and, open loop, each view's reading of the hand and the object against the same
 view of the simulator's frames. Success open loop near the simulator's and far from it closed
@@ -39,6 +40,15 @@ class OneViewReader:
     out = self.reader.read(frames, batch)
     out["state"] = out["per_view"][:, self.view, 2:]
     return out
+
+
+def success_per_view(reader, frames, context: int) -> list[float]:
+  """Frames ``[N, T, S, V*S, 3]`` -> for each view, the share of episodes whose view alone shows
+  success on some frame after the ``context``."""
+  n, t = frames.shape[:2]
+  after = frames[:, context:].reshape((-1,) + frames.shape[2:])
+  probability = reader.read(after)["success_per_view"].reshape(n, t - context, reader.views)
+  return (probability.max(1) > 0.5).mean(0).tolist()
 
 
 def hand_and_object(reader, frames) -> tuple[np.ndarray, np.ndarray]:
@@ -107,6 +117,7 @@ def main(argv=None) -> int:
       gap = np.linalg.norm(state[..., :3] - true_state[..., :3], axis=-1) * 100
       rows[name] = {
           "success": float(evaluate.imagined_success(reader, frames, context).mean()),
+          "success_per_view": success_per_view(reader, frames, context),
           "hand_path_cm": float(np.linalg.norm(np.diff(state[..., :3], axis=1), axis=-1)
                                 .sum(1).mean() * 100),
           "hand_from_simulator_cm": gap.mean(0).round(2).tolist()}
