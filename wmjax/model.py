@@ -6,6 +6,7 @@ config, action statistics, codec) into a :class:`LoadedModel`.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from typing import Any, Sequence
 
@@ -28,6 +29,15 @@ from wmjax.nn.dit import STDiT, relayout_layers
 from wmjax.parallel import abstract_with_shardings, local_data_mesh
 
 Params = Any
+
+
+@functools.partial(jax.jit, static_argnums=(0, 2))
+def _init_network(network: STDiT, rng: jax.Array, shape: tuple[int, ...]) -> Params:
+  """``network.init`` on zero frames ``shape = [1, T, H, W, C]``: compiled once per network and
+  shape (equal networks share it), not traced again at every :meth:`WorldModel.init`."""
+  x = jnp.zeros(shape, jnp.float32)
+  actions = jnp.zeros(shape[:1] + (shape[1] - 1, network.action_dim), jnp.float32)
+  return network.init(rng, x, jnp.zeros(shape[:2], jnp.float32), actions)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -65,9 +75,7 @@ class WorldModel:
     methods take them as they are; ``flax.linen.unbox(variables)`` gives the plain arrays that
     :func:`load_model` returns and that an optax optimiser or a checkpoint wants."""
     n = frames or self.network.num_frames
-    x = jnp.zeros((1, n) + tuple(frame_shape), jnp.float32)
-    actions = jnp.zeros((1, n - 1, self.network.action_dim), jnp.float32)
-    return jax.jit(self.network.init)(rng, x, jnp.zeros((1, n), jnp.float32), actions)
+    return _init_network(self.network, rng, (1, n) + tuple(frame_shape))
 
   # Classifier-free guidance runs the network on the batch twice, conditional then null.
 

@@ -63,7 +63,7 @@ class LearnedPolicy:
     if len(controls) != a:
       raise ValueError(f"controls must name all {a} action dimensions, got {len(controls)}")
     module = FramePolicy(action_dim=a, chunk=chunk, **module_fields)
-    params = module.init(key, jnp.zeros((1, context) + tuple(frame_shape)))["params"]
+    params = jax.jit(module.init)(key, jnp.zeros((1, context) + tuple(frame_shape)))["params"]
     shift, scale = stats.affine(normalization)
     return cls(module, params, jnp.asarray(shift), jnp.asarray(scale),
                jnp.asarray(stats.min, jnp.float32), jnp.asarray(stats.max, jnp.float32),

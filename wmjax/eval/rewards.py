@@ -107,7 +107,8 @@ class SuccessClassifier:
     with open(os.path.join(directory, "classifier.json")) as f:
       meta = json.load(f)
     widths, shape = tuple(meta["widths"]), tuple(meta["frame_shape"])
-    template = SuccessCNN(widths).init(jax.random.key(0), jnp.zeros((1,) + shape))
+    template = jax.eval_shape(SuccessCNN(widths).init, jax.random.key(0),
+                              jnp.zeros((1,) + shape))
     with open(os.path.join(directory, "params.msgpack"), "rb") as f:
       params = serialization.from_bytes(template, f.read())
     return cls(params, widths, shape, meta.get("label", ""))
@@ -135,7 +136,7 @@ def train_success_classifier(frames, labels, *, steps: int = 500, batch_size: in
   weights = np.where(labels > 0, 0.5 / positive, 0.5 / (1 - positive)).astype(np.float32)
   module = SuccessCNN(tuple(widths))
   rng = np.random.default_rng(seed)
-  params = module.init(jax.random.key(seed), to_model(frames[:1]))
+  params = jax.jit(module.init)(jax.random.key(seed), to_model(frames[:1]))
   optimizer = optax.adamw(learning_rate)
   opt_state = optimizer.init(params)
 

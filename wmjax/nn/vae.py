@@ -235,7 +235,9 @@ def random_vae(layout: str, widths: Sequence[int], dtype=jnp.float32, seed: int 
   config = VAEConfig(block_out_channels=widths, layers_per_block=1,
                      norm_num_groups=math.gcd(32, *widths), **LAYOUTS[layout])
   module = AutoencoderKL(config, dtype)
-  return module, module.init(jax.random.key(seed), _images(config))
+  # one compiled program: run eagerly, every convolution and norm of the forward pass that
+  # initialises it would compile as a program of its own (the same parameters to the bit)
+  return module, jax.jit(module.init)(jax.random.key(seed), _images(config))
 
 
 # ----------------------------------------------------------------------------- diffusers weights

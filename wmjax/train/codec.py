@@ -202,7 +202,7 @@ def fit_codec(module: AutoencoderKL, images: np.ndarray, recipe: CodecRecipe,
   ``recipe.steps`` steps of ``recipe.batch_size`` frames drawn with ``rng``; the history holds
   the loss parts at every twentieth of the steps. A non-finite loss stops it with an error."""
   key = jax.random.key(recipe.seed)
-  params = module.init(key, to_model(images[:1]))
+  params = jax.jit(module.init)(key, to_model(images[:1]))  # one program, not one per layer
   schedule = optax.warmup_cosine_decay_schedule(0.0, recipe.learning_rate,
                                                 min(100, recipe.steps // 10 + 1), recipe.steps)
   optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(schedule))
