@@ -25,17 +25,13 @@ os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
 # processes it starts (`wmjax train` subprocesses, notebook kernels, pytest-xdist workers): the
 # suite compiles the same tiny models again and again, in module after module (the fixture below
 # drops the in-memory programs) and in every subprocess. A fresh directory per run, removed at
-# the end by the process that made it, so that every run still compiles everything once. Only
-# programs that took 0.5 s or more to compile are kept: writing and reading back the thousands of
-# single-operation programs (eager jnp calls) cost about what compiling them again does
-# (test_dit + test_rollout + test_env on two workers: 83.3 s with every program kept, 78.6 s
-# with this threshold; benchmarks/RESULTS.md, Test command, 2026-12-08).
+# the end by the process that made it, so that every run still compiles everything once.
 _CACHE_VARIABLE = "WMJAX_TEST_COMPILATION_CACHE"
 _OWN_CACHE = _CACHE_VARIABLE not in os.environ
 if _OWN_CACHE:
   os.environ[_CACHE_VARIABLE] = tempfile.mkdtemp(prefix="wmjax-test-xla-cache-")
 os.environ.update(JAX_COMPILATION_CACHE_DIR=os.environ[_CACHE_VARIABLE],
-                  JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0.5",
+                  JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
                   JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1")
 
 from pathlib import Path  # noqa: E402  (the variables above must be set before jax is imported)
