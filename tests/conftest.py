@@ -131,6 +131,18 @@ def rng():
   return jax.random.key(0)
 
 
+# PyTorch and diffusers (the test extra) are imported by the tests that compare against them, not
+# at collection, where every pytest-xdist worker would pay 4-5 s for them.
+@pytest.fixture(scope="session")
+def torch():
+  return pytest.importorskip("torch")
+
+
+@pytest.fixture(scope="session")
+def diffusers(torch):
+  return pytest.importorskip("diffusers")
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_programs():
   """Drop every module's compiled programs when it ends: the suite compiles hundreds of them

@@ -15,8 +15,6 @@ import pytest
 from wmjax.checkpoints import torch_file
 from wmjax.checkpoints.torch_file import TorchFileError
 
-torch = pytest.importorskip("torch")
-
 pytestmark = pytest.mark.unit
 
 
@@ -38,7 +36,7 @@ def _unpickle(path):
     return saved
 
 
-def test_tensors_read_as_torch_holds_them(tmp_path):
+def test_tensors_read_as_torch_holds_them(tmp_path, torch):
   base = torch.arange(24, dtype=torch.float32).reshape(4, 6)
   tensors = {"float32": base, "transposed": base.t(), "offset_view": base[1:, 2:4],
              "bfloat16": base.to(torch.bfloat16), "float16": base.half(),
@@ -58,7 +56,7 @@ def test_tensors_read_as_torch_holds_them(tmp_path):
     np.testing.assert_array_equal(row.numpy(), base[2].numpy())
 
 
-def test_only_the_tensors_asked_for_are_read(tmp_path):
+def test_only_the_tensors_asked_for_are_read(tmp_path, torch):
   """With the other state dict's storage cut out of the archive, the one asked for still reads
   and the other names the entry it lacks."""
   torch.save({"ema": {"w": torch.ones(3)}, "model": {"w": torch.zeros(3)}}, tmp_path / "a.pt")
@@ -81,7 +79,7 @@ class _Runs:
     return (open, (str(self.marker), "w"))
 
 
-def test_objects_of_other_classes_are_inert_records(tmp_path):
+def test_objects_of_other_classes_are_inert_records(tmp_path, torch):
   """A module's state dict stays an OrderedDict, an optimiser's state and a config object load
   as data and records; a pickle that would open a file opens none."""
   module = torch.nn.Linear(3, 2)
@@ -112,7 +110,7 @@ def test_objects_of_other_classes_are_inert_records(tmp_path):
   assert not marker.exists()
 
 
-def test_files_it_cannot_read_say_why(tmp_path):
+def test_files_it_cannot_read_say_why(tmp_path, torch):
   state = {"w": torch.arange(3, dtype=torch.float32)}
   torch.save(state, tmp_path / "legacy.pt", _use_new_zipfile_serialization=False)
   with pytest.raises(TorchFileError, match=r"serialization from before 1.6.*saved again by a "

@@ -15,15 +15,17 @@ import safetensors.numpy
 from conftest import ROOT, gridworld_config, gridworld_overrides, jit_apply, one_line_error
 from wmjax.codecs import PatchCodec, PixelCodec, codec_config, make_codec
 from wmjax.config import CodecConfig
-from wmjax.nn.vae import load_diffusers, random_vae, save_diffusers
+from wmjax.nn.vae import LAYOUTS, load_diffusers, random_vae, save_diffusers
 from wmjax.train.data import build_data
 
-torch = pytest.importorskip("torch")
-diffusers = pytest.importorskip("diffusers")
-
-from vae_fixtures import LAYOUTS, save_random_vae  # noqa: E402  (needs torch and diffusers)
-
 pytestmark = pytest.mark.unit
+
+
+@pytest.fixture
+def save_random_vae(diffusers):
+  """vae_fixtures.save_random_vae (imported with torch and diffusers, which it needs)."""
+  import vae_fixtures
+  return vae_fixtures.save_random_vae
 
 
 def _relative_error(ours, theirs):
@@ -32,7 +34,7 @@ def _relative_error(ours, theirs):
 
 @pytest.mark.parametrize("layout", sorted(LAYOUTS))
 @pytest.mark.slow
-def test_encode_and_decode_match_diffusers(tmp_path, layout):
+def test_encode_and_decode_match_diffusers(tmp_path, layout, torch, save_random_vae):
   vae = save_random_vae(tmp_path / layout, layout)
   module, params = load_diffusers(str(tmp_path / layout))
   x = np.random.default_rng(0).uniform(-1, 1, (2, 32, 24, 3)).astype(np.float32)
@@ -52,7 +54,7 @@ def test_encode_and_decode_match_diffusers(tmp_path, layout):
 
 
 @pytest.mark.slow
-def test_vae_codec_applies_scaling_and_shift_over_video_axes(tmp_path):
+def test_vae_codec_applies_scaling_and_shift_over_video_axes(tmp_path, save_random_vae):
   save_random_vae(tmp_path / "sd3", "sd3")
   codec = make_codec(codec_config(kind="vae", path=str(tmp_path / "sd3"), chunk=3))
   assert (codec.scaling_factor, codec.shift_factor) == (1.5305, 0.0609)
@@ -81,7 +83,7 @@ def _rewrite(src, dst, edit):
   return str(dst)
 
 
-def test_weight_file_errors_name_the_parameter(tmp_path):
+def test_weight_file_errors_name_the_parameter(tmp_path, save_random_vae):
   save_random_vae(tmp_path / "vae", "sdxl")
   key = "decoder.up_blocks.1.resnets.0.conv1.weight"
   missing = _rewrite(tmp_path / "vae", tmp_path / "missing", lambda s: s.pop(key))
@@ -156,7 +158,8 @@ def test_a_random_vae_codec_reads_no_files(layout):
 
 
 @pytest.mark.parametrize("layout", sorted(LAYOUTS))
-def test_a_random_vae_has_the_parameters_of_its_diffusers_layout(tmp_path, layout):
+def test_a_random_vae_has_the_parameters_of_its_diffusers_layout(tmp_path, layout,
+                                                                 save_random_vae):
   """random_vae's network is the diffusers AutoencoderKL of that layout and widths (one ResNet a
   level, GroupNorm groups dividing every width): the same parameter names and shapes."""
   save_random_vae(tmp_path, layout, widths=(8, 12), layers_per_block=1, norm_num_groups=4)
@@ -166,7 +169,7 @@ def test_a_random_vae_has_the_parameters_of_its_diffusers_layout(tmp_path, layou
   assert jax.tree.map(np.shape, random_params) == jax.tree.map(np.shape, params)
 
 
-def test_a_saved_vae_reads_back_in_diffusers_and_wmjax(tmp_path):
+def test_a_saved_vae_reads_back_in_diffusers_and_wmjax(tmp_path, torch, diffusers):
   module, params = random_vae("sdxl", (8, 16), seed=3)
   save_diffusers(str(tmp_path / "vae"), module.config, params)
   again, read = load_diffusers(str(tmp_path / "vae"))
